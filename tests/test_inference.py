@@ -1,0 +1,253 @@
+import cv2
+import jax
+import numpy as np
+import optax
+import pytest
+
+from usp_jax import checkpoint, evaluation, inference
+from usp_jax.config import Config
+from usp_jax.inference import Detector
+from usp_jax.model import ModelConfig, UnsuperPoint, init_variables
+
+SMALL = ModelConfig(
+    backbone_channels=(8, 8, 8, 8, 16, 16, 16, 16), head_channels=16, descriptor_dim=16
+)
+
+
+@pytest.fixture(scope="module")
+def variables():
+    return init_variables(jax.random.PRNGKey(0), SMALL)
+
+
+@pytest.fixture(scope="module")
+def detector(variables):
+    return Detector(variables, SMALL)
+
+
+@pytest.fixture(scope="module")
+def image(photo):
+    """A 40x56 crop of a real photo (a multiple of 8 on both sides)."""
+    return np.ascontiguousarray(photo[200:240, 200:256])
+
+
+def assert_same_features(a, b, atol=1e-5):
+    np.testing.assert_allclose(a.keypoints, b.keypoints, atol=atol)
+    np.testing.assert_allclose(a.scores, b.scores, atol=atol)
+    np.testing.assert_allclose(a.descriptors, b.descriptors, atol=atol)
+
+
+def inside(keypoints, height, width, border=0.0):
+    """Pixel-centre convention: the image spans [-0.5, size - 0.5) on each axis."""
+    x, y = keypoints[:, 0], keypoints[:, 1]
+    return (
+        (x >= border - 0.5) & (x < width - 0.5 - border) & (y >= border - 0.5) & (y < height - 0.5 - border)
+    )
+
+
+def test_detect_odd_size_returns_sorted_unit_points_inside_image(detector, image):
+    odd = image[:37, :53]
+    features = detector.detect(odd)
+    n = len(features.scores)
+    assert 0 < n <= 5 * 7
+    assert features.keypoints.dtype == features.scores.dtype == np.float32
+    assert features.descriptors.dtype == np.float32
+    assert features.keypoints.shape == (n, 2) and features.descriptors.shape == (n, 16)
+    assert np.all(inside(features.keypoints, 37, 53))
+    assert np.all(np.diff(features.scores) <= 0)
+    np.testing.assert_allclose(np.linalg.norm(features.descriptors, axis=1), 1.0, rtol=1e-5)
+
+
+def test_detect_returns_the_networks_points_sorted_by_score(detector, variables, image):
+    features = detector.detect(image)
+    predictions = UnsuperPoint(SMALL).apply(variables, image[None] / np.float32(255), train=False)
+    order = np.argsort(-np.asarray(predictions.scores[0]), kind="stable")
+    np.testing.assert_allclose(features.keypoints, predictions.keypoints[0][order], atol=1e-5)
+    np.testing.assert_allclose(features.descriptors, predictions.descriptors[0][order], atol=1e-5)
+
+
+def test_gray_image_is_detected_as_replicated_rgb(detector, image):
+    gray = cv2.cvtColor(image[:37, :53], cv2.COLOR_RGB2GRAY)
+    assert_same_features(detector.detect(gray), detector.detect(np.stack([gray] * 3, axis=-1)))
+
+
+def test_padding_does_not_move_points(detector, image):
+    # An image whose last rows/columns already replicate its 37x53 top-left part, as padding
+    # does: the 37x53 crop must give exactly the full image's points that lie inside the crop.
+    cropped = image[:37, :53]
+    full = np.pad(cropped, ((0, 3), (0, 3), (0, 0)), mode="edge")
+    everywhere = detector.detect(full)
+    shared = inside(everywhere.keypoints, 37, 53)
+    assert 0 < shared.sum() < len(shared)
+    assert_same_features(
+        detector.detect(cropped), evaluation.Features(*(a[shared] for a in everywhere))
+    )
+
+
+def test_top_n_keeps_the_highest_scores(detector, image):
+    everything = detector.detect(image)
+    best = detector.detect(image, top_n=5)
+    assert_same_features(best, evaluation.Features(*(a[:5] for a in everything)))
+
+
+@pytest.mark.parametrize("radius", [4.0, 12.0])
+def test_radius_nms_matches_evaluation_nms_radius(radius):
+    cells_h, cells_w = 6, 7
+    rng = np.random.default_rng(int(radius))
+    m = cells_h * cells_w
+    relative = rng.uniform(size=(m, 2)).astype(np.float32)
+    rows, cols = np.divmod(np.arange(m), cells_w)
+    keypoints = (np.stack([cols, rows], axis=1) + relative) * 8 - 0.5
+    scores = rng.uniform(size=m).astype(np.float32)
+    valid = rng.uniform(size=m) < 0.9
+    keep = np.asarray(inference.radius_nms(keypoints, scores, valid, cells_h, cells_w, radius))
+    candidates = np.flatnonzero(valid)
+    expected = candidates[evaluation.nms_radius(keypoints[candidates], scores[candidates], radius)]
+    assert 0 < len(expected) < len(candidates)  # the test exercises suppression
+    np.testing.assert_array_equal(np.flatnonzero(keep), np.sort(expected))
+
+
+def test_detector_nms_keeps_points_apart_like_evaluation(detector, variables, image):
+    radius = 10.0
+    candidates = detector.detect(image[:37, :53])
+    kept = Detector(variables, SMALL, nms_radius=radius).detect(image[:37, :53])
+    distances = np.linalg.norm(kept.keypoints[:, None] - kept.keypoints[None], axis=-1)
+    assert np.all(distances[~np.eye(len(distances), dtype=bool)] > radius)
+    expected = evaluation.nms_radius(candidates.keypoints, candidates.scores, radius)
+    assert len(expected) < len(candidates.scores)
+    assert_same_features(kept, evaluation.Features(*(a[expected] for a in candidates)))
+
+
+def test_border_drops_points_near_the_edges(detector, variables, image):
+    everything = detector.detect(image[:37, :53])
+    kept = Detector(variables, SMALL, border=6).detect(image[:37, :53])
+    expected = inside(everything.keypoints, 37, 53, border=6)
+    assert 0 < expected.sum() < len(expected)
+    assert_same_features(kept, evaluation.Features(*(a[expected] for a in everything)))
+
+
+@pytest.mark.parametrize(
+    "bad",
+    [
+        np.zeros((37, 53, 3), np.float32),
+        np.zeros((37, 53, 4), np.uint8),
+        np.zeros((7, 53, 3), np.uint8),
+        np.zeros((53,), np.uint8),
+    ],
+)
+def test_bad_images_raise_one_line_value_error_naming_the_shape(detector, bad):
+    with pytest.raises(ValueError, match=r"\(" + ", ".join(map(str, bad.shape))) as error:
+        detector.detect(bad)
+    assert "\n" not in str(error.value)
+
+
+def test_images_that_pad_to_one_shape_compile_once(variables, image, monkeypatch):
+    traces = []
+    select = inference._select_points
+
+    def counting(*args, **kwargs):
+        traces.append(1)
+        return select(*args, **kwargs)
+
+    monkeypatch.setattr(inference, "_select_points", counting)
+    fresh = Detector(variables, SMALL)
+    fresh.detect(image[:37, :53])
+    fresh.detect(image[:38, :54])
+    fresh.detect(image)
+    assert len(traces) == 1
+    fresh.detect(image, top_n=3)
+    assert len(traces) == 2
+
+
+def test_detect_batch_equals_per_image_results(detector, image, photo):
+    stack = np.stack([image[:37, :53], image[3:, 3:]])
+    for batched, single in zip(detector.detect_batch(stack), stack):
+        assert_same_features(batched, detector.detect(single))
+    mixed = [image[:37, :53], cv2.cvtColor(photo[:48, :64], cv2.COLOR_RGB2GRAY), image[2:, 2:]]
+    for batched, single in zip(detector.detect_batch(mixed), mixed):
+        assert_same_features(batched, detector.detect(single))
+
+
+def test_weights_round_trip_in_float16(variables, tmp_path):
+    path = tmp_path / "weights.npz"
+    inference.save_weights(path, variables, SMALL)
+    config, loaded = inference.load_weights(path)
+    assert config == SMALL
+    flat = jax.tree_util.tree_leaves_with_path(variables)
+    assert [p for p, _ in flat] == [p for p, _ in jax.tree_util.tree_leaves_with_path(loaded)]
+    for (_, original), restored in zip(flat, jax.tree.leaves(loaded)):
+        assert restored.dtype == np.float32
+        np.testing.assert_allclose(restored, original, rtol=1e-3, atol=1e-4)
+
+
+def test_save_weights_refuses_values_float16_cannot_hold(variables, tmp_path):
+    huge = jax.tree.map(lambda x: x, variables)
+    huge["batch_stats"] = jax.tree.map(lambda x: x * 0 + 1e6, variables["batch_stats"])
+    with pytest.raises(ValueError, match="float16"):
+        inference.save_weights(tmp_path / "w.npz", huge, SMALL)
+
+
+def test_pretrained_loads_shipped_weights_or_says_how_to_train(
+    variables, image, tmp_path, monkeypatch
+):
+    path = tmp_path / "unsuperpoint.npz"
+    monkeypatch.setattr(inference, "PRETRAINED_WEIGHTS", path)
+    with pytest.raises(FileNotFoundError, match="usp-jax train"):
+        Detector.pretrained()
+    inference.save_weights(path, variables, SMALL)
+    pretrained = Detector.pretrained(top_n=4)
+    assert pretrained.model_config == SMALL
+    assert len(pretrained.detect(image).scores) == 4
+
+
+def test_from_checkpoint_restores_the_trained_variables(variables, detector, image, tmp_path):
+    state = {
+        "params": variables["params"],
+        "batch_stats": variables["batch_stats"],
+        "opt_state": optax.adam(1e-3).init(variables["params"]),
+        "step": np.int32(7),
+        "key": jax.random.PRNGKey(1),
+    }
+    mngr = checkpoint.manager(tmp_path / "checkpoints")
+    checkpoint.save(mngr, 7, state, Config(model=SMALL))
+    mngr.wait_until_finished()
+    restored = Detector.from_checkpoint(tmp_path)
+    assert restored.model_config == SMALL
+    assert_same_features(restored.detect(image), detector.detect(image))
+
+
+def test_exported_detector_runs_without_the_model(variables, image, tmp_path):
+    path = tmp_path / "detector.jax"
+    source = Detector(variables, SMALL, top_n=6, nms_radius=10)
+    inference.export(source, path, 37, 53)
+    run = inference.load_exported(path)
+    stack = np.stack([image[:37, :53], image[3:, 3:]])
+    for batch in (stack, stack[:1]):
+        for exported, expected in zip(run(batch), source.detect_batch(batch)):
+            assert_same_features(exported, expected)
+
+
+def test_as_method_returns_every_candidate_for_uniform_evaluation(variables, image):
+    method = inference.as_method(Detector(variables, SMALL, top_n=3, nms_radius=10, border=4))
+    features = method.detect(image)
+    assert method.name == "UnsuperPoint" and method.norm == cv2.NORM_L2
+    assert len(features.scores) == (40 // 8) * (56 // 8)
+
+
+def test_to_cv2_points_match_and_give_a_homography(detector, photo):
+    # A shift by whole cells moves the (translation-equivariant) network's cells onto each
+    # other, so even random weights give matching descriptors away from the image border.
+    image = cv2.resize(photo, (96, 64), interpolation=cv2.INTER_AREA)
+    shift = np.array([[1, 0, 16], [0, 1, 8], [0, 0, 1]], np.float32)
+    warped = cv2.warpPerspective(image, shift, (96, 64))
+    keypoints1, descriptors1 = inference.to_cv2(detector.detect(image))
+    keypoints2, descriptors2 = inference.to_cv2(detector.detect(warped))
+    assert all(isinstance(k, cv2.KeyPoint) for k in keypoints1)
+    assert descriptors1.dtype == np.float32 and descriptors1.shape == (len(keypoints1), 16)
+    matches = cv2.BFMatcher(cv2.NORM_L2, crossCheck=True).match(descriptors1, descriptors2)
+    p1 = np.float32([keypoints1[m.queryIdx].pt for m in matches])
+    p2 = np.float32([keypoints2[m.trainIdx].pt for m in matches])
+    correct = np.linalg.norm(p1 + shift[:2, 2] - p2, axis=1) < 1
+    assert correct.sum() >= 10 and correct.mean() > 0.5
+    homography, _ = cv2.findHomography(p1, p2, cv2.RANSAC, 3.0)
+    assert homography.shape == (3, 3)
+    np.testing.assert_allclose(homography / homography[2, 2], shift, atol=0.05)

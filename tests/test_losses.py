@@ -1,0 +1,155 @@
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import usp_jax
+from usp_jax import geometry, losses
+from usp_jax.model import ModelConfig, UnsuperPoint, init_variables
+
+
+def test_uniform_loss_is_eq10_on_sorted_values():
+    rng = np.random.default_rng(0)
+    v = rng.uniform(2.0, 5.0, size=17)
+    s = np.sort(v)
+    expected = sum(((s[i] - 2.0) / 3.0 - i / 16) ** 2 for i in range(17))
+    assert float(losses.uniform_loss(jnp.asarray(v), 2.0, 5.0)) == pytest.approx(expected, rel=1e-5)
+    # Order of the input does not matter: it is a distance between distributions.
+    assert float(losses.uniform_loss(jnp.asarray(v[::-1]), 2.0, 5.0)) == pytest.approx(
+        expected, rel=1e-5)
+
+
+def test_uniform_loss_small_for_even_spread_large_for_clusters():
+    even = jnp.linspace(0, 1, 1200)
+    random_uniform = jax.random.uniform(jax.random.PRNGKey(0), (1200,))
+    clustered = 0.5 + 0.02 * jax.random.normal(jax.random.PRNGKey(1), (1200,))
+    assert float(usp_jax.uniform_loss(even)) == pytest.approx(0.0, abs=1e-9)
+    assert float(usp_jax.uniform_loss(random_uniform)) < 1.0
+    # All at 0.5 gives sum_i (0.5 - i / (M - 1))^2 ~ M / 12 = 100; 0.02 noise leaves ~87.
+    assert float(usp_jax.uniform_loss(clustered)) > 80.0
+
+
+def test_descriptor_loss_matches_numpy_loop():
+    rng = np.random.default_rng(1)
+    fa = rng.normal(size=(5, 4)).astype(np.float32)
+    fb = rng.normal(size=(6, 4)).astype(np.float32)
+    fa /= np.linalg.norm(fa, axis=1, keepdims=True)
+    fb /= np.linalg.norm(fb, axis=1, keepdims=True)
+    c = (rng.uniform(size=(5, 6)) < 0.3).astype(np.float32)
+    mask = (rng.uniform(size=(5, 6)) < 0.8).astype(np.float32)
+    expected = 0.0
+    for i in range(5):
+        for j in range(6):
+            dot = float(fa[i] @ fb[j])
+            l = 250 * c[i, j] * max(0, 1 - dot) + (1 - c[i, j]) * max(0, dot - 0.2)
+            expected += mask[i, j] * l
+    got = losses.descriptor_loss(*map(jnp.asarray, (fa, fb, c, mask)))
+    assert float(got) == pytest.approx(expected, rel=1e-5)
+
+
+@pytest.mark.parametrize("mode", ["squared", "signed"])
+def test_decorrelation_loss_matches_numpy_corrcoef(mode):
+    f = np.random.default_rng(2).normal(size=(50, 6)).astype(np.float32)
+    f[:, 1] = f[:, 0] * 0.7 + 0.3 * f[:, 1]
+    r = np.corrcoef(f, rowvar=False)
+    off = r[~np.eye(6, dtype=bool)]
+    expected = np.sum(off**2) if mode == "squared" else np.sum(off)
+    assert float(losses.decorrelation_loss(jnp.asarray(f), mode)) == pytest.approx(expected,
+                                                                                   rel=1e-4)
+
+
+def test_squared_decorrelation_is_zero_only_when_decorrelated():
+    q, _ = np.linalg.qr(np.random.default_rng(3).normal(size=(64, 8)))
+    q -= q.mean(axis=0)  # orthogonal, zero-mean columns: uncorrelated
+    q, _ = np.linalg.qr(q)
+    q -= q.mean(axis=0)
+    decorrelated = jnp.asarray(q, jnp.float32)
+    assert float(losses.decorrelation_loss(decorrelated)) < 1e-3
+    # Two anti-correlated copies minimise the printed signed form without being decorrelated.
+    x = np.random.default_rng(4).normal(size=(64, 1))
+    anti = jnp.asarray(np.hstack([x, -x]), jnp.float32)
+    assert float(losses.decorrelation_loss(anti, "signed")) == pytest.approx(-2.0, abs=1e-4)
+    assert float(losses.decorrelation_loss(anti, "squared")) == pytest.approx(2.0, abs=1e-4)
+
+
+def test_usp_loss_matches_hand_computation():
+    sa = np.array([0.9, 0.2, 0.5, 0.7])
+    sb = np.array([0.7, 0.4, 0.5, 0.1])
+    d = np.array([1.0, 3.0, 2.0, 9.0])
+    paired = np.array([True, True, True, False])
+    k = paired.sum()
+    mean_d = d[paired].mean()
+    expected = (1 * d[paired].sum() + 2 * ((sa - sb)[paired] ** 2).sum()
+                + (((sa + sb) / 2 - 0) * (d - mean_d))[paired].sum())
+    loss, metrics = losses.usp_loss(*map(jnp.asarray, (sa, sb, d, paired)))
+    assert float(loss) == pytest.approx(expected, rel=1e-5)
+    assert float(metrics["K"]) == k and float(metrics["mean_d"]) == pytest.approx(mean_d)
+
+
+SMALL = ModelConfig(backbone_channels=(8, 8, 8, 8, 16, 16, 16, 16), head_channels=16,
+                    descriptor_dim=16)
+
+
+def predict(config, images):
+    variables = init_variables(jax.random.PRNGKey(0), config)
+    return UnsuperPoint(config).apply(variables, images), variables
+
+
+def test_identity_homography_gives_zero_position_loss():
+    images = jax.random.uniform(jax.random.PRNGKey(0), (1, 32, 48, 3))
+    pred, _ = predict(SMALL, images)
+    _, metrics = losses.total_loss(pred, pred, jnp.eye(3)[None], 32, 48)
+    assert float(metrics["usp/K"]) == 24  # every one of the 4 x 6 cells pairs with itself
+    assert float(metrics["usp/mean_d"]) == pytest.approx(0.0, abs=1e-5)
+    assert float(metrics["usp/score"]) == pytest.approx(0.0, abs=1e-8)
+
+
+def test_zero_correspondences_give_finite_loss_and_gradients():
+    images = jax.random.uniform(jax.random.PRNGKey(1), (2, 32, 48, 3))
+    variables = init_variables(jax.random.PRNGKey(0), SMALL)
+    far_away = jnp.tile(jnp.array([[1.0, 0, 1000], [0, 1, 1000], [0, 0, 1]]), (2, 1, 1))
+
+    def loss(params):
+        pred = UnsuperPoint(SMALL).apply({**variables, "params": params}, images)
+        return losses.total_loss(pred, pred, far_away, 32, 48)
+
+    (value, metrics), grads = jax.value_and_grad(loss, has_aux=True)(variables["params"])
+    assert float(metrics["usp/K"]) == 0
+    assert np.isfinite(float(value))
+    assert all(np.all(np.isfinite(g)) for g in jax.tree.leaves(grads))
+
+
+def test_total_loss_gradient_through_the_model_is_finite_and_nonzero():
+    images = jax.random.uniform(jax.random.PRNGKey(2), (2, 32, 48, 3))
+    variables = init_variables(jax.random.PRNGKey(0), SMALL)
+    hs = jax.vmap(lambda k: geometry.sample_homography(k, 32, 48))(
+        jax.random.split(jax.random.PRNGKey(3), 2))
+
+    def loss(params):
+        pred_a = UnsuperPoint(SMALL).apply({**variables, "params": params}, images)
+        pred_b = UnsuperPoint(SMALL).apply({**variables, "params": params}, images[:, ::-1])
+        return losses.total_loss(pred_a, pred_b, hs, 32, 48)[0]
+
+    grads = jax.grad(loss)(variables["params"])
+    norms = [float(jnp.linalg.norm(g)) for g in jax.tree.leaves(grads)]
+    assert all(np.isfinite(norms)) and max(norms) > 0
+
+
+def test_no_term_swamps_the_others_at_initialisation(photo):
+    """The paper's network on a real 240x320 photo pair: the four weighted terms of eq. 4 are
+    within two orders of magnitude of each other at initialisation (seed 0: usp ~1.2e3,
+    uni_xy ~3.7e3, desc ~3.5e2, decorr ~85)."""
+    image = jnp.asarray(photo[100:340, 100:420], jnp.float32)[None] / 255.0
+    h = geometry.sample_homography(jax.random.PRNGKey(0), 240, 320)
+    warped, _ = geometry.warp_image(image[0], h, (240, 320))
+    model = UnsuperPoint()
+    variables = init_variables(jax.random.PRNGKey(0))
+    # Training mode: BatchNorm normalises with batch statistics, as in the first train step.
+    pred, _ = jax.jit(lambda x: model.apply(variables, x, train=True, mutable=["batch_stats"]))(
+        jnp.concatenate([image, warped[None]]))
+    pa = jax.tree.map(lambda x: x[:1], pred)
+    pb = jax.tree.map(lambda x: x[1:], pred)
+    _, metrics = losses.total_loss(pa, pb, h[None], 240, 320)
+    terms = {k: abs(float(metrics[f"loss/{k}"])) for k in ("usp", "uni_xy", "desc", "decorr")}
+    print(terms)
+    assert max(terms.values()) / min(terms.values()) < 100, terms

@@ -1,0 +1,115 @@
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+import scipy.ndimage
+
+from usp_jax.model import (
+    CELL,
+    ModelConfig,
+    UnsuperPoint,
+    bilinear_sample,
+    init_variables,
+    relative_to_pixels,
+)
+
+SMALL = ModelConfig(backbone_channels=(8, 8, 8, 8, 16, 16, 16, 16), head_channels=16,
+                    descriptor_dim=8)
+
+
+def apply(config, images):
+    variables = init_variables(jax.random.PRNGKey(0), config)
+    return UnsuperPoint(config).apply(variables, images)
+
+
+def test_outputs_have_one_point_per_cell_with_paper_ranges():
+    images = jax.random.uniform(jax.random.PRNGKey(1), (2, 40, 56, 3))
+    pred = apply(SMALL, images)
+    m = (40 // 8) * (56 // 8)
+    assert pred.scores.shape == (2, m)
+    assert pred.relative.shape == pred.keypoints.shape == (2, m, 2)
+    assert pred.descriptors.shape == (2, m, 8)
+    assert 0 <= pred.scores.min() and pred.scores.max() <= 1
+    assert 0 <= pred.relative.min() and pred.relative.max() <= 1
+    np.testing.assert_allclose(np.linalg.norm(pred.descriptors, axis=-1), 1.0, rtol=1e-5)
+
+
+def test_position_mapping_is_paper_eq1_in_pixel_centre_coordinates():
+    rel = np.random.default_rng(0).uniform(size=(3 * 4, 2)).astype(np.float32)
+    xy = np.asarray(relative_to_pixels(jnp.asarray(rel), 3, 4))
+    for r in range(3):
+        for c in range(4):
+            i = r * 4 + c
+            # Paper eq. 1 gives edge coordinates; OpenCV centres are 0.5 px lower.
+            assert xy[i, 0] == pytest.approx((c + rel[i, 0]) * 8 - 0.5)
+            assert xy[i, 1] == pytest.approx((r + rel[i, 1]) * 8 - 0.5)
+    # The cell centre (relative 0.5) is the mean of the cell's pixel centres 8c .. 8c + 7.
+    centre = relative_to_pixels(jnp.full((1, 2), 0.5), 1, 1)
+    np.testing.assert_allclose(centre, [[3.5, 3.5]])
+
+
+def test_default_network_is_the_papers():
+    variables = init_variables(jax.random.PRNGKey(0))
+    kernels = [
+        leaf.shape for path, leaf in jax.tree_util.tree_leaves_with_path(variables["params"])
+        if path[-1].key == "kernel"
+    ]
+    out_channels = sorted(k[-1] for k in kernels)
+    # 8 backbone convs, 3 heads of (256 -> 256) + (256 -> 1 | 2 | 256).
+    assert sorted(out_channels) == sorted([32, 32, 64, 64, 128, 128, 256, 256] + [256] * 3 + [1, 2, 256])
+    assert all(k[:2] == (3, 3) for k in kernels)
+
+
+def reference_sample(feature_map, xy):
+    """SciPy's order-1 spline with edge clamping, at feature coordinate (x + 0.5) / 8 - 0.5."""
+    u = (xy[:, 0] + 0.5) / CELL - 0.5
+    v = (xy[:, 1] + 0.5) / CELL - 0.5
+    return np.stack(
+        [
+            scipy.ndimage.map_coordinates(feature_map[..., ch], [v, u], order=1, mode="nearest")
+            for ch in range(feature_map.shape[-1])
+        ],
+        axis=-1,
+    )
+
+
+def test_bilinear_sampler_matches_scipy_including_borders():
+    rng = np.random.default_rng(0)
+    fmap = rng.normal(size=(5, 7, 3)).astype(np.float32)
+    xy = rng.uniform([-0.5, -0.5], [7 * 8 - 0.5, 5 * 8 - 0.5], size=(200, 2)).astype(np.float32)
+    np.testing.assert_allclose(
+        bilinear_sample(jnp.asarray(fmap), jnp.asarray(xy)), reference_sample(fmap, xy), atol=1e-5
+    )
+
+
+def test_sampling_at_cell_centres_returns_the_coarse_entries():
+    fmap = np.random.default_rng(1).normal(size=(3, 4, 2)).astype(np.float32)
+    xy = relative_to_pixels(jnp.full((12, 2), 0.5), 3, 4)
+    np.testing.assert_allclose(bilinear_sample(jnp.asarray(fmap), xy), fmap.reshape(12, 2),
+                               atol=1e-6)
+
+
+def test_sampler_gradient_reaches_positions():
+    fmap = jnp.asarray(np.random.default_rng(2).normal(size=(3, 4, 2)), jnp.float32)
+    grad = jax.grad(lambda xy: bilinear_sample(fmap, xy).sum())(jnp.array([[10.0, 9.0]]))
+    assert np.all(np.isfinite(grad)) and np.any(grad != 0)
+
+
+def test_interpolation_off_reads_the_cell_descriptor():
+    images = jax.random.uniform(jax.random.PRNGKey(3), (1, 16, 24, 3))
+    on = apply(SMALL, images)
+    off = apply(ModelConfig(**{**SMALL.__dict__, "interpolate_descriptors": False}), images)
+    np.testing.assert_allclose(on.scores, off.scores)
+    assert not np.allclose(on.descriptors, off.descriptors)
+
+
+@pytest.mark.parametrize("shape", [(1, 30, 32, 3), (1, 32, 4, 3), (32, 32, 3)])
+def test_bad_input_shape_is_a_clear_error(shape):
+    with pytest.raises(ValueError, match="multiple of 8|expected images"):
+        apply(SMALL, jnp.zeros(shape))
+
+
+def test_bfloat16_compute_keeps_float32_outputs():
+    images = jax.random.uniform(jax.random.PRNGKey(4), (1, 16, 16, 3))
+    pred = apply(ModelConfig(**{**SMALL.__dict__, "dtype": "bfloat16"}), images)
+    assert pred.scores.dtype == jnp.float32 and pred.descriptors.dtype == jnp.float32

@@ -1,0 +1,129 @@
+"""Tests of usp_jax.pairs: HPatches layout, ground-truth homographies that register the images, errors."""
+
+import cv2
+import numpy as np
+import pytest
+import skimage.data
+
+from usp_jax.pairs import make_pairs
+
+HEIGHT, WIDTH = 60, 80
+
+
+def write_photo(path, rgb, size):
+    """Writes an RGB photo resized to size (w, h), BGR on disk."""
+    resized = cv2.resize(rgb, size, interpolation=cv2.INTER_AREA)
+    cv2.imwrite(str(path), cv2.cvtColor(resized, cv2.COLOR_RGB2BGR))
+
+
+@pytest.fixture(scope="module")
+def photos(tmp_path_factory):
+    """A textured photo, one smaller than the output (so it is enlarged), a broken file and a text file."""
+    folder = tmp_path_factory.mktemp("photos")
+    write_photo(folder / "astronaut.png", skimage.data.astronaut(), (160, 120))
+    write_photo(folder / "chelsea.jpg", skimage.data.chelsea(), (40, 30))
+    (folder / "broken.jpg").write_bytes(b"not an image")
+    (folder / "notes.txt").write_text("ignored: not an image suffix")
+    return folder
+
+
+@pytest.fixture(scope="module")
+def scenes(photos, tmp_path_factory):
+    with pytest.warns(UserWarning, match="broken.jpg"):
+        return make_pairs(photos, tmp_path_factory.mktemp("pairs"), size=(HEIGHT, WIDTH))
+
+
+def read(path):
+    return cv2.imread(str(path)).astype(np.float32) / 255.0
+
+
+def test_make_pairs_writes_hpatches_layout(scenes):
+    assert [scene.name for scene in scenes] == ["v_astronaut", "i_astronaut", "v_chelsea", "i_chelsea"]
+    for scene in scenes:
+        assert sorted(p.name for p in scene.iterdir()) == (
+            [f"{k}.ppm" for k in range(1, 7)] + [f"H_1_{k}" for k in range(2, 7)])
+        for k in range(1, 7):
+            assert cv2.imread(str(scene / f"{k}.ppm")).shape == (HEIGHT, WIDTH, 3)
+        for k in range(2, 7):
+            homography = np.loadtxt(scene / f"H_1_{k}")
+            assert homography.shape == (3, 3) and homography[2, 2] == pytest.approx(1.0)
+
+
+def test_viewpoint_homographies_register_image_1_onto_image_k(scenes):
+    for scene in (s for s in scenes if s.name.startswith("v_")):
+        first = read(scene / "1.ppm")
+        for k in range(2, 7):
+            homography = np.loadtxt(scene / f"H_1_{k}")
+            target = read(scene / f"{k}.ppm")
+            covered = cv2.warpPerspective(np.ones((HEIGHT, WIDTH), np.float32), homography, (WIDTH, HEIGHT))
+            # Away from the edge of image 1's footprint, where bilinear weights mix in the black border.
+            inside = cv2.erode((covered >= 1 - 1e-6).astype(np.uint8), np.ones((5, 5), np.uint8)).astype(bool)
+            assert inside.mean() > 0.3
+            error = np.abs(cv2.warpPerspective(first, homography, (WIDTH, HEIGHT)) - target)[inside].mean()
+            # Both images are resampled from the same photo: only interpolation differences remain.
+            assert error < 0.03
+            nudged = np.array([[1, 0, 1.5], [0, 1, 1.5], [0, 0, 1]]) @ homography
+            misregistered = np.abs(cv2.warpPerspective(first, nudged, (WIDTH, HEIGHT)) - target)[inside]
+            assert misregistered.mean() > 2 * error
+            # The view is not image 1 itself: the homography is a real viewpoint change.
+            assert np.abs(homography - np.eye(3)).max() > 0.05
+
+
+def test_views_have_no_black_borders(tmp_path):
+    bright = (100 + 0.6 * skimage.data.astronaut()).astype(np.uint8)  # no dark pixel in the photo itself
+    # Larger than needed, so it is only shrunk (INTER_AREA, which cannot undershoot like cubic enlarging).
+    write_photo(tmp_path / "bright.png", bright, (200, 200))
+    for scene in make_pairs(tmp_path, tmp_path / "out", size=(HEIGHT, WIDTH), kinds=("v",)):
+        for k in range(1, 7):
+            # A pixel sampled even partly outside the photo would mix in the black border value.
+            assert cv2.imread(str(scene / f"{k}.ppm")).min() >= 99
+
+
+def test_illumination_scenes_keep_geometry_and_change_light(scenes):
+    for scene in (s for s in scenes if s.name.startswith("i_")):
+        first = read(scene / "1.ppm")
+        np.testing.assert_array_equal(first, read(scene.parent / f"v_{scene.name[2:]}" / "1.ppm"))
+        changes = []
+        for k in range(2, 7):
+            np.testing.assert_allclose(np.loadtxt(scene / f"H_1_{k}"), np.eye(3))
+            image = read(scene / f"{k}.ppm")
+            changes.append(np.abs(image - first).mean())
+            # Same structure: the grey images stay strongly correlated.
+            assert np.corrcoef(first.mean(-1).ravel(), image.mean(-1).ravel())[0, 1] > 0.6
+        assert min(changes) > 0.01 and changes[-1] > changes[0]
+
+
+def test_make_pairs_is_deterministic_for_a_seed(photos, scenes, tmp_path):
+    with pytest.warns(UserWarning):
+        again = make_pairs(photos, tmp_path / "again", size=(HEIGHT, WIDTH), kinds=("v",))
+    with pytest.warns(UserWarning):
+        other = make_pairs(photos, tmp_path / "other", size=(HEIGHT, WIDTH), kinds=("v",), seed=1)
+    assert [s.name for s in again] == ["v_astronaut", "v_chelsea"]
+    for scene in again:
+        for name in ("2.ppm", "H_1_2"):
+            assert (scene / name).read_bytes() == (scenes[0].parent / scene.name / name).read_bytes()
+    assert not np.allclose(np.loadtxt(other[0] / "H_1_2"), np.loadtxt(again[0] / "H_1_2"))
+
+
+def test_missing_or_empty_sources_raise_naming_them(tmp_path):
+    with pytest.raises(FileNotFoundError, match="nowhere"):
+        make_pairs(tmp_path / "nowhere", tmp_path / "out")
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(FileNotFoundError, match="empty"):
+        make_pairs(tmp_path / "empty", tmp_path / "out")
+    with pytest.raises(FileNotFoundError, match="ghost.png"):
+        make_pairs([tmp_path / "ghost.png"], tmp_path / "out")
+
+
+def test_unreadable_only_sources_raise(tmp_path):
+    (tmp_path / "bad.png").write_bytes(b"\x89PNG broken")
+    with pytest.warns(UserWarning, match="bad.png"), pytest.raises(FileNotFoundError, match="could be read"):
+        make_pairs(tmp_path, tmp_path / "out")
+    assert not (tmp_path / "out").exists()
+
+
+def test_duplicate_scene_names_are_rejected_before_writing(photos, tmp_path):
+    write_photo(tmp_path / "astronaut.jpg", skimage.data.astronaut(), (80, 60))
+    with pytest.raises(ValueError, match="astronaut"):
+        make_pairs([photos / "astronaut.png", tmp_path / "astronaut.jpg"], tmp_path / "out")
+    assert not (tmp_path / "out").exists()

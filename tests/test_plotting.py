@@ -1,0 +1,75 @@
+"""The figures are written as PNGs of the documented size."""
+
+import cv2
+import numpy as np
+import skimage.data
+
+from usp_jax import plotting
+from usp_jax.evaluation import Features, match_and_estimate, warp_points
+
+HOMOGRAPHY = np.array([[1.0, 0.05, 3.0], [-0.02, 1.0, 2.0], [0.0, 0.0, 1.0]])
+
+
+def images():
+    image1 = cv2.resize(skimage.data.astronaut(), (64, 48))
+    return image1, cv2.warpPerspective(image1, HOMOGRAPHY, (64, 48))
+
+
+def png_shape(path):
+    assert path.stat().st_size > 0
+    return cv2.imread(str(path)).shape
+
+
+def test_plot_keypoints_writes_a_two_panel_png(tmp_path):
+    image1, image2 = images()
+    points = np.random.default_rng(0).uniform(0, 40, size=(30, 2))
+    path = plotting.plot_keypoints(
+        image1, points, image2, warp_points(points, HOMOGRAPHY), tmp_path / "kp.png", HOMOGRAPHY
+    )
+    height, width, _ = png_shape(path)
+    assert width == 2 * plotting.PANEL_INCHES * plotting.DPI and height > 0
+
+
+def test_plot_keypoints_without_homography_or_points(tmp_path):
+    image1, image2 = images()
+    path = plotting.plot_keypoints(
+        image1[..., 0], np.zeros((0, 2)), image2, np.zeros((0, 2)), tmp_path / "a" / "kp.png"
+    )
+    assert png_shape(path)[1] == 2 * plotting.PANEL_INCHES * plotting.DPI
+
+
+def test_plot_matches_draws_estimated_and_failed_homographies(tmp_path):
+    image1, image2 = images()
+    points = np.random.default_rng(0).uniform(5, 40, size=(20, 2)).astype(np.float32)
+    descriptors = np.eye(20, dtype=np.float32)
+    f1 = Features(points, np.ones(20, np.float32), descriptors)
+    f2 = Features(
+        warp_points(points, HOMOGRAPHY).astype(np.float32), np.ones(20, np.float32), descriptors
+    )
+    matching = match_and_estimate(f1, f2)
+    for name, estimate in (("est.png", matching.homography), ("none.png", None)):
+        path = plotting.plot_matches(
+            image1,
+            image2,
+            f1.keypoints,
+            f2.keypoints,
+            matching.matches,
+            matching.inliers,
+            HOMOGRAPHY,
+            estimate,
+            tmp_path / name,
+        )
+        assert png_shape(path)[1] == 2 * plotting.PANEL_INCHES * plotting.DPI
+
+
+def test_plot_histograms_writes_png_of_fixed_size(tmp_path):
+    rng = np.random.default_rng(0)
+    values = {
+        "without uniform loss": rng.beta(0.5, 0.5, 500),
+        "with uniform loss": rng.uniform(size=300),
+    }
+    path = plotting.plot_histograms(
+        values, tmp_path / "h.png", bins=20, xlabel="relative x", title="Figure 4"
+    )
+    width, height = (round(inches * plotting.DPI) for inches in plotting.HISTOGRAM_INCHES)
+    assert png_shape(path) == (height, width, 3)

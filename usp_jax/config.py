@@ -1,0 +1,172 @@
+"""Experiment configuration: one frozen dataclass tree, overridable as ``section.field=value``.
+
+Each module owns the dataclass of its concept (``ModelConfig`` in model, ``LossConfig`` in losses,
+...); ``Config`` only composes them with the optimisation settings. ``experiments/*.py`` each
+define ``get_config()`` for one reproducible run.
+"""
+
+from __future__ import annotations
+
+import ast
+import dataclasses
+import importlib.util
+import json
+import pathlib
+import typing
+from typing import Any
+
+from usp_jax.augment import PhotometricConfig
+from usp_jax.data import DataConfig
+from usp_jax.geometry import HomographyConfig
+from usp_jax.losses import LossConfig
+from usp_jax.model import ModelConfig
+
+
+@dataclasses.dataclass(frozen=True)
+class OptimConfig:
+    """Adam with its default betas (paper section 5: "ADAM optimizer with a default setting")."""
+
+    learning_rate: float = 1e-3
+    # Steps of linear warm-up from 0; 0 keeps the paper's constant rate.
+    warmup_steps: int = 0
+    # Global-norm clipping, 0 = off (the paper does not clip).
+    clip_norm: float = 0.0
+
+
+@dataclasses.dataclass(frozen=True)
+class Config:
+    """Everything a training run depends on. ``batch_size`` is global and per branch."""
+
+    model: ModelConfig = ModelConfig()
+    loss: LossConfig = LossConfig()
+    homography: HomographyConfig = HomographyConfig()
+    photometric: PhotometricConfig = PhotometricConfig()
+    data: DataConfig = DataConfig()
+    optim: OptimConfig = OptimConfig()
+    batch_size: int = 5
+    num_steps: int = 236_574  # 10 epochs of COCO train2017 (118,287 images) at batch 5.
+    seed: int = 0
+    checkpoint_every: int = 2000
+    keep_checkpoints: int = 3
+    log_every: int = 50
+
+
+def paper() -> Config:
+    """The paper's run (section 5): 240x320 colour crops, batch 5 per branch, Adam, 10 epochs."""
+    return Config()
+
+
+def cpu() -> Config:
+    """A run that learns something in minutes on a laptop CPU: small crops, short schedule."""
+    return Config(
+        data=DataConfig(height=120, width=160),
+        batch_size=4,
+        num_steps=2000,
+        checkpoint_every=250,
+        log_every=10,
+    )
+
+
+PRESETS = {"paper": paper, "cpu": cpu}
+
+
+def load(spec: str) -> Config:
+    """A preset name (``paper``, ``cpu``) or a Python file defining ``get_config()``."""
+    if spec in PRESETS:
+        return PRESETS[spec]()
+    path = pathlib.Path(spec)
+    if not path.is_file():
+        raise FileNotFoundError(
+            f"config {spec!r} is neither a preset ({', '.join(PRESETS)}) nor an existing file"
+        )
+    module_spec = importlib.util.spec_from_file_location(path.stem, path)
+    module = importlib.util.module_from_spec(module_spec)
+    module_spec.loader.exec_module(module)
+    if not hasattr(module, "get_config"):
+        raise ValueError(f"config file {spec} defines no get_config()")
+    return module.get_config()
+
+
+def _coerce(text: str, annotation: Any, where: str) -> Any:
+    origin = typing.get_origin(annotation)
+    try:
+        if annotation is bool:
+            if text.lower() in ("1", "true", "yes", "on"):
+                return True
+            if text.lower() in ("0", "false", "no", "off"):
+                return False
+            raise ValueError(text)
+        if annotation in (int, float, str):
+            return annotation(text)
+        if origin in (tuple, list) or annotation in (tuple, list):
+            value = ast.literal_eval(text)
+            return tuple(value) if not isinstance(value, (int, float)) else (value,)
+        return ast.literal_eval(text)
+    except (ValueError, SyntaxError):
+        raise ValueError(f"cannot read {text!r} as {annotation} for {where}") from None
+
+
+def override(config: Config, assignments: list[str]) -> Config:
+    """Applies ``["loss.alpha_uni_xy=50", "batch_size=10", ...]`` and returns a new Config."""
+    for assignment in assignments:
+        if "=" not in assignment:
+            raise ValueError(f"override {assignment!r} is not of the form key=value")
+        key, text = assignment.split("=", 1)
+        config = _set(config, key.strip().split("."), text.strip(), key)
+    return config
+
+
+def _set(node: Any, path: list[str], text: str, key: str) -> Any:
+    fields = {f.name: f for f in dataclasses.fields(node)}
+    if path[0] not in fields:
+        raise ValueError(
+            f"unknown config key {key!r}; {type(node).__name__} has {', '.join(fields)}"
+        )
+    hints = typing.get_type_hints(type(node))
+    current = getattr(node, path[0])
+    if len(path) > 1:
+        if not dataclasses.is_dataclass(current):
+            raise ValueError(f"config key {key!r}: {path[0]} has no sub-fields")
+        return dataclasses.replace(node, **{path[0]: _set(current, path[1:], text, key)})
+    return dataclasses.replace(node, **{path[0]: _coerce(text, hints[path[0]], key)})
+
+
+def to_dict(config: Config) -> dict:
+    return dataclasses.asdict(config)
+
+
+def from_dict(data: dict, cls: type = Config) -> Any:
+    """Inverse of ``to_dict`` (tuples restored from JSON lists)."""
+    hints = typing.get_type_hints(cls)
+    kwargs = {}
+    for f in dataclasses.fields(cls):
+        if f.name not in data:
+            continue
+        value, annotation = data[f.name], hints[f.name]
+        if dataclasses.is_dataclass(annotation):
+            value = from_dict(value, annotation)
+        elif isinstance(value, list):
+            value = tuple(value)
+        kwargs[f.name] = value
+    return cls(**kwargs)
+
+
+def save(config: Config, path: pathlib.Path) -> None:
+    path.write_text(json.dumps(to_dict(config), indent=2) + "\n")
+
+
+def read(path: pathlib.Path) -> Config:
+    return from_dict(json.loads(pathlib.Path(path).read_text()))
+
+
+__all__ = [
+    "Config",
+    "OptimConfig",
+    "cpu",
+    "load",
+    "override",
+    "paper",
+    "read",
+    "save",
+    "to_dict",
+]

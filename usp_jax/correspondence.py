@@ -1,0 +1,89 @@
+"""Point-pair correspondences between the two siamese branches (paper section 4, eqs. 2-3, 11).
+
+All shapes are fixed (masks instead of variable-length sets) so everything jits and vmaps.
+Shapes are for one image pair; vmap over the batch.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+
+
+class Correspondences(NamedTuple):
+    """Nearest-neighbour point-pairs from branch A to branch B.
+
+    distances:  [MA, MB] G of eq. 2 (A points warped by T vs B points), float32.
+    valid_a:    [MA] A point lands inside image B after warping by T.
+    valid_b:    [MB] B point's preimage under T lies inside image A.
+    nearest:    [MA] index j of A point i's nearest valid B point.
+    d:          [MA] d_k (eq. 3): distance to that neighbour, differentiable in both positions.
+    paired:     [MA] point i forms a point-pair: valid and d <= eps_correspond.
+    """
+
+    distances: jax.Array
+    valid_a: jax.Array
+    valid_b: jax.Array
+    nearest: jax.Array
+    d: jax.Array
+    paired: jax.Array
+
+
+def pairwise_distances(xy_a: jax.Array, xy_b: jax.Array) -> jax.Array:
+    """Euclidean distance matrix, [MA, 2] x [MB, 2] -> [MA, MB].
+
+    Written as |a|^2 + |b|^2 - 2 a.b so it is one matmul; the square root is guarded so its
+    gradient stays finite where two points coincide (an identity T pairs every point with itself).
+    """
+    sq = (
+        jnp.sum(xy_a**2, -1)[:, None]
+        + jnp.sum(xy_b**2, -1)[None, :]
+        - 2.0 * xy_a @ xy_b.T
+    )
+    return safe_sqrt(sq)
+
+
+def safe_sqrt(sq: jax.Array, tiny: float = 1e-12) -> jax.Array:
+    """sqrt with a zero (not infinite) gradient at 0."""
+    positive = sq > tiny
+    return jnp.where(positive, jnp.sqrt(jnp.where(positive, sq, 1.0)), 0.0)
+
+
+def inside(xy: jax.Array, height: int, width: int) -> jax.Array:
+    """[..., 2] -> [...] bool: inside the image, [-0.5, W - 0.5] x [-0.5, H - 0.5] (pixel edges)."""
+    x, y = xy[..., 0], xy[..., 1]
+    return (x >= -0.5) & (x <= width - 0.5) & (y >= -0.5) & (y <= height - 0.5)
+
+
+def find_correspondences(
+    xy_a_in_b: jax.Array,
+    xy_b_in_a: jax.Array,
+    xy_b: jax.Array,
+    height: int,
+    width: int,
+    eps_correspond: float = 4.0,
+) -> Correspondences:
+    """Point-pairs of section 4: A point i pairs with its nearest B point j if g_ij <= eps.
+
+    xy_a_in_b: [MA, 2] branch-A points warped by T into image B (``T p^A``).
+    xy_b_in_a: [MB, 2] branch-B points warped by T^-1 into image A (only for the mask).
+    xy_b:      [MB, 2] branch-B points.
+    Points without a counterpart in the other view are masked out of the nearest-neighbour search,
+    so they can neither pair nor attract a pair (peers note: unmasked borders drift).
+    """
+    valid_a = inside(xy_a_in_b, height, width)
+    valid_b = inside(xy_b_in_a, height, width)
+    distances = pairwise_distances(xy_a_in_b, xy_b)
+    search = jnp.where(valid_b[None, :], jax.lax.stop_gradient(distances), jnp.inf)
+    nearest = jnp.argmin(search, axis=1)
+    # Recompute d_k from the gathered points: cheaper to differentiate than the full matrix.
+    d = safe_sqrt(jnp.sum((xy_a_in_b - xy_b[nearest]) ** 2, axis=-1))
+    paired = valid_a & valid_b[nearest] & (d <= eps_correspond)
+    return Correspondences(distances, valid_a, valid_b, nearest, d, paired)
+
+
+def correspondence_matrix(corr: Correspondences, eps_descriptor: float = 8.0) -> jax.Array:
+    """C of eq. 11: c_ij = 1 if g_ij <= 8, as float32 [MA, MB]."""
+    return (jax.lax.stop_gradient(corr.distances) <= eps_descriptor).astype(jnp.float32)

@@ -1,0 +1,421 @@
+"""Running a trained UnsuperPoint: images of any size in, sorted keypoints and descriptors out.
+
+One jitted function per detector does everything on the device: uint8 -> float, the network,
+dropping points in the padding and the border, radius NMS, top-N selection and the gather of
+the selected descriptors (interpolated inside the model, paper section 2.4). The host only pads
+images to whole 8x8 cells and slices the fixed-size results. Coordinates follow the project's
+convention (``usp_jax.model`` docstring): (x, y), pixel centres at integers, as in OpenCV.
+
+Padding: images are padded at the bottom and right by *edge replication* to a multiple of 8.
+Zero padding would put an artificial black step right after the last row/column, which the
+network scores like any strong edge; replication adds no new gradient, so points near the
+bottom/right border behave like points elsewhere. Points that land in the padding are dropped.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import importlib.resources
+import json
+import pathlib
+from collections.abc import Sequence
+from typing import Any
+
+import cv2
+import flax
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from usp_jax import checkpoint
+from usp_jax import config as config_lib
+from usp_jax.evaluation import Features, Method
+from usp_jax.model import CELL, ModelConfig, UnsuperPoint
+
+#: Weights that ship inside the package (none yet: train with ``usp-jax train``).
+PRETRAINED_WEIGHTS = importlib.resources.files("usp_jax") / "weights" / "unsuperpoint.npz"
+
+# Key of the JSON ModelConfig inside a weights file; parameter keys are "params/..." paths.
+_CONFIG_KEY = "model_config"
+_SEPARATOR = "/"
+
+
+# ---------------------------------------------------------------------------------------------
+# Weights files
+
+
+def save_weights(path: str | pathlib.Path, variables: dict, model_config: ModelConfig) -> None:
+    """Write ``{"params", "batch_stats"}`` as one float16 ``.npz`` plus the ModelConfig as JSON.
+
+    Float16 halves the file; inference casts back to float32. Raises ValueError instead of
+    writing a value that float16 cannot hold (|x| > 65504), so no weight is silently lost.
+    """
+    flat = flax.traverse_util.flatten_dict(
+        {"params": variables["params"], "batch_stats": variables["batch_stats"]},
+        sep=_SEPARATOR,
+    )
+    arrays = {}
+    for key, value in flat.items():
+        half = np.asarray(value, dtype=np.float16)
+        if not np.all(np.isfinite(half)):
+            raise ValueError(f"weight {key} does not fit in float16 (max |x| = 65504)")
+        arrays[key] = half
+    config_json = json.dumps(dataclasses.asdict(model_config))
+    np.savez_compressed(path, **arrays, **{_CONFIG_KEY: np.array(config_json)})
+
+
+def load_weights(path: str | pathlib.Path) -> tuple[ModelConfig, dict]:
+    """Inverse of :func:`save_weights`: ``(ModelConfig, {"params", "batch_stats"})`` in float32."""
+    path = pathlib.Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"weights file {path} does not exist")
+    with np.load(path, allow_pickle=False) as data:
+        if _CONFIG_KEY not in data:
+            raise ValueError(f"{path} is not a usp-jax weights file (no {_CONFIG_KEY} entry)")
+        model_config = config_lib.from_dict(json.loads(str(data[_CONFIG_KEY])), ModelConfig)
+        flat = {k: data[k].astype(np.float32) for k in data.files if k != _CONFIG_KEY}
+    return model_config, flax.traverse_util.unflatten_dict(flat, sep=_SEPARATOR)
+
+
+# ---------------------------------------------------------------------------------------------
+# The compiled part: selection of points from the network's M candidates
+
+
+def _neighbours(values: jax.Array, cells_h: int, cells_w: int, reach: int, fill) -> jax.Array:
+    """The values of every other cell within ``reach`` cells, [M, ...] -> [O, M, ...].
+
+    O = (2 reach + 1)^2 - 1 offsets; cells outside the grid read ``fill``.
+    """
+    rest = values.shape[1:]
+    grid = values.reshape(cells_h, cells_w, *rest)
+    pad = ((reach, reach), (reach, reach)) + ((0, 0),) * len(rest)
+    padded = jnp.pad(grid, pad, constant_values=fill)
+    offsets = [
+        (dy, dx)
+        for dy in range(-reach, reach + 1)
+        for dx in range(-reach, reach + 1)
+        if (dy, dx) != (0, 0)
+    ]
+    return jnp.stack(
+        [
+            padded[reach + dy : reach + dy + cells_h, reach + dx : reach + dx + cells_w].reshape(
+                cells_h * cells_w, *rest
+            )
+            for dy, dx in offsets
+        ]
+    )
+
+
+def radius_nms(
+    keypoints: jax.Array,
+    scores: jax.Array,
+    valid: jax.Array,
+    cells_h: int,
+    cells_w: int,
+    radius: float,
+) -> jax.Array:
+    """Greedy radius NMS of one image's M candidates (one per cell), the paper's "NMS = 4".
+
+    keypoints [M, 2], scores [M], valid [M] bool (row-major cells) -> keep [M] bool. Same result
+    as ``evaluation.nms_radius`` on the valid points: by decreasing score (ties: lower index
+    first), a point is kept unless a kept point lies within ``radius`` px (inclusive).
+
+    Two facts make this cheap with fixed shapes. A point stays inside its cell's 8x8 pixels, so
+    points d cells apart are at least 8 (d - 1) px apart and only cells within
+    ``floor(radius / 8) + 1`` can interact (3x3 cells for radius 4). And the greedy result is the
+    unique fixed point of ``keep_i = valid_i and no kept stronger neighbour``: iterating that map
+    from ``keep = valid`` settles one more level of the dependency chain per step, so the loop
+    stops after (longest chain of suppressions) steps, usually a handful, never more than M.
+    """
+    reach = int(radius // CELL) + 1
+    m = scores.shape[0]
+
+    def around(values, fill):
+        return _neighbours(values, cells_h, cells_w, reach, fill)
+
+    index = jnp.arange(m)
+    other_index = around(index, m)
+    other_scores = around(scores, -jnp.inf)
+    stronger = (other_scores > scores) | ((other_scores == scores) & (other_index < index))
+    close = jnp.sum((around(keypoints, jnp.inf) - keypoints) ** 2, axis=-1) <= radius**2
+    suppressors = around(valid, False) & stronger & close  # [O, M]
+
+    def step(state):
+        keep, _ = state
+        new = valid & ~jnp.any(suppressors & around(keep, False), axis=0)
+        return new, jnp.any(new != keep)
+
+    keep, _ = jax.lax.while_loop(lambda state: state[1], step, (valid, jnp.bool_(True)))
+    return keep
+
+
+def _select_points(
+    predictions,
+    sizes: jax.Array,
+    cells_h: int,
+    cells_w: int,
+    top_n: int | None,
+    nms_radius: float,
+    border: float,
+) -> tuple[jax.Array, ...]:
+    """Drop padding/border points, NMS, top-N: batched Predictions -> fixed-size outputs.
+
+    sizes: int32 [B, 2] (height, width) of each image before padding. A point is kept when it is
+    at least ``border`` px from the image edges, which lie at -0.5 and size - 0.5 in pixel-centre
+    coordinates. Returns keypoints [B, K, 2], scores [B, K], descriptors [B, K, F] sorted by
+    score, and counts [B]: only the first counts[b] entries of image b are points.
+    """
+    keypoints, scores = predictions.keypoints, predictions.scores
+    extent = sizes[:, None, ::-1].astype(jnp.float32)  # [B, 1, 2] (width, height)
+    inside = (keypoints >= border - 0.5) & (keypoints < extent - 0.5 - border)
+    keep = jnp.all(inside, axis=-1)
+    if nms_radius > 0:
+        keep = jax.vmap(radius_nms, in_axes=(0, 0, 0, None, None, None))(
+            keypoints, scores, keep, cells_h, cells_w, nms_radius
+        )
+    k = cells_h * cells_w if top_n is None else min(top_n, cells_h * cells_w)
+    ranked, order = jax.lax.top_k(jnp.where(keep, scores, -jnp.inf), k)
+    counts = jnp.minimum(jnp.sum(keep, axis=-1), k)
+    return (
+        jnp.take_along_axis(keypoints, order[..., None], axis=1),
+        ranked,
+        jnp.take_along_axis(predictions.descriptors, order[..., None], axis=1),
+        counts,
+    )
+
+
+def _detect_padded(
+    variables: dict,
+    images: jax.Array,
+    sizes: jax.Array,
+    *,
+    model: UnsuperPoint,
+    top_n: int | None,
+    nms_radius: float,
+    border: float,
+) -> tuple[jax.Array, ...]:
+    """uint8 [B, H, W, 3] (H, W multiples of 8) + sizes [B, 2] -> :func:`_select_points` output."""
+    predictions = model.apply(variables, images.astype(jnp.float32) / 255.0, train=False)
+    cells_h, cells_w = images.shape[1] // CELL, images.shape[2] // CELL
+    return _select_points(predictions, sizes, cells_h, cells_w, top_n, nms_radius, border)
+
+
+def _unbatch(outputs) -> list[Features]:
+    """Fixed-size device outputs -> one Features per image (numpy, float32)."""
+    keypoints, scores, descriptors, counts = jax.device_get(outputs)
+    return [
+        Features(
+            np.asarray(keypoints[b, :n], np.float32),
+            np.asarray(scores[b, :n], np.float32),
+            np.asarray(descriptors[b, :n], np.float32),
+        )
+        for b, n in enumerate(counts)
+    ]
+
+
+# ---------------------------------------------------------------------------------------------
+# Host side: validation and padding
+
+
+def _padding(height: int, width: int) -> tuple[int, int]:
+    return -height % CELL, -width % CELL
+
+
+def _as_rgb(image: Any) -> np.ndarray:
+    """Validate one image and return it as uint8 [H, W, 3] (gray replicated to 3 channels)."""
+    image = np.asarray(image)
+    shape = image.shape
+    if image.dtype != np.uint8 or not (image.ndim == 2 or (image.ndim == 3 and shape[2] == 3)):
+        raise ValueError(
+            f"expected a uint8 HxWx3 RGB or HxW gray image, got shape {shape} dtype {image.dtype}"
+        )
+    if min(shape[:2]) < CELL:
+        raise ValueError(f"image of shape {shape} is smaller than {CELL} px on a side")
+    return np.repeat(image[:, :, None], 3, axis=2) if image.ndim == 2 else image
+
+
+def _pad(images: np.ndarray) -> np.ndarray:
+    """Edge-pad uint8 [..., H, W, 3] at the bottom/right to whole cells (module docstring)."""
+    pad_h, pad_w = _padding(*images.shape[-3:-1])
+    return np.pad(
+        images, [(0, 0)] * (images.ndim - 3) + [(0, pad_h), (0, pad_w), (0, 0)], mode="edge"
+    )
+
+
+# ---------------------------------------------------------------------------------------------
+# The detector
+
+
+class Detector:
+    """UnsuperPoint as a keypoint detector/descriptor for uint8 images of any size >= 8x8.
+
+    ``top_n``: keep at most this many points (None: all, one per 8x8 cell). ``nms_radius``:
+    greedy radius suppression in px before the top-N cut (0: off; the paper's "NMS = 4" is 4).
+    ``border``: drop points within this many px of the image edges.
+
+    The network runs in float32 on CPU (where bfloat16 convolutions are emulated and slower) and
+    in ``model_config.dtype`` elsewhere. One function is compiled per padded input shape, batch
+    size and ``top_n``; images that pad to the same shape share it.
+    """
+
+    def __init__(
+        self,
+        variables: dict,
+        model_config: ModelConfig = ModelConfig(),
+        *,
+        top_n: int | None = None,
+        nms_radius: float = 0,
+        border: float = 0,
+    ):
+        if top_n is not None and top_n < 1:
+            raise ValueError(f"top_n must be positive or None, got {top_n}")
+        if nms_radius < 0 or border < 0:
+            raise ValueError(
+                f"nms_radius and border must be >= 0, got nms_radius={nms_radius}, border={border}"
+            )
+        if jax.default_backend() == "cpu":
+            model_config = dataclasses.replace(model_config, dtype="float32")
+        self.model_config = model_config
+        self.variables = jax.device_put(
+            jax.tree.map(
+                lambda x: jnp.asarray(x, jnp.float32),
+                {"params": variables["params"], "batch_stats": variables["batch_stats"]},
+            )
+        )
+        self.top_n = top_n
+        self.nms_radius = float(nms_radius)
+        self.border = float(border)
+        self._function = functools.partial(
+            _detect_padded,
+            model=UnsuperPoint(model_config),
+            nms_radius=self.nms_radius,
+            border=self.border,
+        )
+        self._forward = jax.jit(self._function, static_argnames="top_n")
+
+    @classmethod
+    def from_checkpoint(cls, path: str | pathlib.Path, **options) -> Detector:
+        """The latest checkpoint of a training workdir (or its ``checkpoints/`` or a step folder)."""
+        config, variables = checkpoint.load_variables(path)
+        return cls(variables, config.model, **options)
+
+    @classmethod
+    def pretrained(cls, **options) -> Detector:
+        """The weights shipped in ``usp_jax/weights/unsuperpoint.npz``."""
+        with importlib.resources.as_file(PRETRAINED_WEIGHTS) as path:
+            if not path.is_file():
+                raise FileNotFoundError(
+                    f"no pretrained weights ship with usp-jax yet ({path} is missing); train a model"
+                    " with `usp-jax train ...` and load it with Detector.from_checkpoint(workdir)"
+                )
+            model_config, variables = load_weights(path)
+        return cls(variables, model_config, **options)
+
+    def detect(self, image: np.ndarray, top_n: int | None = None) -> Features:
+        """Keypoints of one uint8 [H, W, 3] RGB or [H, W] gray image, H, W >= 8.
+
+        Returns Features: keypoints float32 [N, 2] (x, y) in the image's pixels, scores [N]
+        sorted descending, descriptors float32 [N, F] of unit length. ``top_n`` overrides the
+        detector's. Raises ValueError naming the shape for a wrong dtype, ndim or size.
+        """
+        return self._run(_as_rgb(image)[None], top_n)[0]
+
+    def detect_batch(
+        self, images: np.ndarray | Sequence[np.ndarray], top_n: int | None = None
+    ) -> list[Features]:
+        """:meth:`detect` for a uint8 [B, H, W, 3] stack (one compiled call) or a list of images
+        of any sizes (one call per padded shape). Results are in input order."""
+        if isinstance(images, np.ndarray) and images.ndim == 4:
+            if images.dtype != np.uint8 or images.shape[-1] != 3 or min(images.shape[1:3]) < CELL:
+                raise ValueError(
+                    f"expected a uint8 [B, H, W, 3] stack with H, W >= {CELL}, got shape"
+                    f" {images.shape} dtype {images.dtype}"
+                )
+            return self._run(images, top_n)
+        rgb = [_as_rgb(image) for image in images]
+        groups: dict[tuple[int, int], list[int]] = {}
+        for i, image in enumerate(rgb):
+            height, width = image.shape[:2]
+            pad_h, pad_w = _padding(height, width)
+            groups.setdefault((height + pad_h, width + pad_w), []).append(i)
+        results: list[Features] = [None] * len(rgb)
+        for members in groups.values():
+            padded = np.stack([_pad(rgb[i]) for i in members])
+            sizes = np.array([rgb[i].shape[:2] for i in members], np.int32)
+            for i, features in zip(members, self._call(padded, sizes, top_n)):
+                results[i] = features
+        return results
+
+    def _run(self, stack: np.ndarray, top_n: int | None) -> list[Features]:
+        """A same-size uint8 [B, H, W, 3] stack of any H, W >= 8."""
+        sizes = np.tile(np.array(stack.shape[1:3], np.int32), (len(stack), 1))
+        return self._call(_pad(stack), sizes, top_n)
+
+    def _call(self, padded: np.ndarray, sizes: np.ndarray, top_n: int | None) -> list[Features]:
+        top_n = self.top_n if top_n is None else top_n
+        return _unbatch(self._forward(self.variables, padded, sizes, top_n=top_n))
+
+
+def as_method(detector: Detector, name: str = "UnsuperPoint") -> Method:
+    """The detector as an evaluation Method (L2 descriptors) returning ALL its candidate points:
+    the evaluation applies NMS and top-k to every method alike, so ``detector``'s ``top_n``,
+    ``nms_radius`` and ``border`` are not used."""
+    every_point = Detector(detector.variables, detector.model_config)
+    return Method(name, every_point.detect, cv2.NORM_L2)
+
+
+def to_cv2(features: Features) -> tuple[list[cv2.KeyPoint], np.ndarray]:
+    """OpenCV keypoints (``pt`` = (x, y), ``size`` = one 8 px cell, ``response`` = score) and the
+    float32 [N, F] descriptors, ready for ``cv2.BFMatcher(cv2.NORM_L2)``."""
+    keypoints = [
+        cv2.KeyPoint(float(x), float(y), float(CELL), response=float(score))
+        for (x, y), score in zip(features.keypoints, features.scores)
+    ]
+    return keypoints, np.ascontiguousarray(features.descriptors, dtype=np.float32)
+
+
+# ---------------------------------------------------------------------------------------------
+# Ahead-of-time export
+
+
+def export(
+    detector: Detector,
+    path: str | pathlib.Path,
+    height: int,
+    width: int,
+    batch: str | int = "b",
+) -> None:
+    """Serialise the whole detector (weights included) for uint8 images [batch, height, width, 3].
+
+    ``batch`` is a symbolic dimension name (any batch size at run time) or a fixed int. The file
+    holds a ``jax.export`` artifact for the current platform computing ``(keypoints [B, K, 2],
+    scores [B, K], descriptors [B, K, F], counts [B])`` with the detector's top_n, NMS and border;
+    padding to whole cells happens inside. Read it back with :func:`load_exported`.
+    """
+    _as_rgb(np.zeros((height, width, 3), np.uint8))  # same size check as detect
+    (batch_dim,) = (batch,) if isinstance(batch, int) else jax.export.symbolic_shape(batch)
+    pad_h, pad_w = _padding(height, width)
+
+    def detect(images):
+        padded = jnp.pad(images, ((0, 0), (0, pad_h), (0, pad_w), (0, 0)), mode="edge")
+        sizes = jnp.broadcast_to(jnp.array([height, width], jnp.int32), (images.shape[0], 2))
+        return detector._function(detector.variables, padded, sizes, top_n=detector.top_n)
+
+    spec = jax.ShapeDtypeStruct((batch_dim, height, width, 3), jnp.uint8)
+    exported = jax.export.export(jax.jit(detect))(spec)
+    pathlib.Path(path).write_bytes(exported.serialize())
+
+
+def load_exported(path: str | pathlib.Path):
+    """A file written by :func:`export` as ``uint8 [B, H, W, 3] -> list[Features]``; needs only
+    JAX (``jax.export.deserialize``), not the model code."""
+    path = pathlib.Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"exported detector {path} does not exist")
+    exported = jax.export.deserialize(bytearray(path.read_bytes()))
+
+    def detect_batch(images: np.ndarray) -> list[Features]:
+        return _unbatch(exported.call(images))
+
+    return detect_batch

@@ -1,0 +1,196 @@
+"""The UnsuperPoint network (paper section 2) as a Flax Linen module.
+
+Coordinate convention (the one place it is defined): pixel coordinates are (x, y) with x to the
+right, y down and pixel *centres* at integers, exactly as in OpenCV. The paper's mapping
+(eq. 1), ``P_map = (cell + P_relative) * 8``, is written in pixel-*edge* coordinates where pixel i
+spans [i, i + 1]; in centre coordinates it is ``(cell + P_relative) * 8 - 0.5``. A relative
+position of 0 is the outer edge of the cell's first pixel, 1 the outer edge of its last pixel and
+0.5 the cell centre ``8 c + 3.5``. The descriptor map entry of cell c sits at that centre, so a
+pixel coordinate x reads the descriptor map at ``(x + 0.5) / 8 - 0.5``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import NamedTuple
+
+import flax.linen as nn
+import jax
+import jax.numpy as jnp
+
+CELL = 8  # Three 2x2 max-pools: one point per 8x8 cell.
+_MEAN, _STD = 0.5, 0.225  # Paper section 5: images normalised by (x - 0.5) / 0.225.
+
+
+@dataclasses.dataclass(frozen=True)
+class ModelConfig:
+    """Network shape. Defaults are the paper's (section 2)."""
+
+    backbone_channels: tuple[int, ...] = (32, 32, 64, 64, 128, 128, 256, 256)
+    head_channels: int = 256
+    descriptor_dim: int = 256
+    # C1-C4 of the paper's Table 1 sample the descriptor map at the predicted position; C0 reads
+    # the coarse entry of the cell.
+    interpolate_descriptors: bool = True
+    # Compute dtype of the convolutions ("bfloat16" on accelerators); parameters stay float32.
+    dtype: str = "float32"
+    leaky_relu_slope: float = 0.01
+    # Variance scale of the heads' last conv kernels (centred, see _zero_mean_init). For the
+    # position head, 7 makes the pre-sigmoid outputs roughly Logistic(0, 1) under training
+    # BatchNorm, so P_relative starts close to U(0, 1): the uniform loss (x100) then starts near
+    # its minimum instead of swamping the other terms in the first steps, as peers reported.
+    # The paper does not specify an initialisation.
+    position_init_scale: float = 7.0
+    batch_norm_momentum: float = 0.9
+
+    def __post_init__(self):
+        if len(self.backbone_channels) != 8:
+            raise ValueError(
+                f"backbone_channels needs 8 entries (4 pairs of convs), got {self.backbone_channels}"
+            )
+
+
+class Predictions(NamedTuple):
+    """Per-image network outputs; M = (H / 8) * (W / 8) points in row-major cell order.
+
+    scores:      [..., M]     in [0, 1] (score head + sigmoid).
+    relative:    [..., M, 2]  (x, y) position inside the cell in [0, 1] (position head + sigmoid).
+    keypoints:   [..., M, 2]  (x, y) pixel coordinates, module docstring convention.
+    descriptors: [..., M, F]  L2-normalised.
+    """
+
+    scores: jax.Array
+    relative: jax.Array
+    keypoints: jax.Array
+    descriptors: jax.Array
+
+
+def check_image_size(height: int, width: int) -> None:
+    if height % CELL or width % CELL or height < CELL or width < CELL:
+        raise ValueError(
+            f"image size {height}x{width} (HxW) is not a positive multiple of {CELL} on both sides;"
+            " pad or resize it first (usp_jax.Detector pads automatically)"
+        )
+
+
+def cell_origins(cells_h: int, cells_w: int) -> jax.Array:
+    """(c, r) index of every cell in row-major order, [M, 2] float32."""
+    rows, cols = jnp.meshgrid(jnp.arange(cells_h), jnp.arange(cells_w), indexing="ij")
+    return jnp.stack([cols.ravel(), rows.ravel()], axis=-1).astype(jnp.float32)
+
+
+def relative_to_pixels(relative: jax.Array, cells_h: int, cells_w: int) -> jax.Array:
+    """Paper eq. 1 in pixel-centre coordinates: ``(cell + P_relative) * 8 - 0.5``.
+
+    relative: [..., M, 2] in [0, 1]  ->  [..., M, 2] pixel (x, y).
+    """
+    return (cell_origins(cells_h, cells_w) + relative) * CELL - 0.5
+
+
+def bilinear_sample(feature_map: jax.Array, xy: jax.Array) -> jax.Array:
+    """Bilinearly samples ``feature_map`` [h, w, C] at pixel positions xy [N, 2] -> [N, C].
+
+    Pixel (x, y) reads feature coordinate ((x + 0.5) / 8 - 0.5, (y + 0.5) / 8 - 0.5) (module
+    docstring); outside the centres of the border cells the border value is repeated. The weights
+    are differentiable in xy, which is what lets the descriptor loss train positions (section 2.4).
+    """
+    h, w, _ = feature_map.shape
+    u = (xy[:, 0] + 0.5) / CELL - 0.5
+    v = (xy[:, 1] + 0.5) / CELL - 0.5
+    u = jnp.clip(u, 0.0, w - 1.0)
+    v = jnp.clip(v, 0.0, h - 1.0)
+    u0 = jnp.clip(jnp.floor(u), 0, max(w - 2, 0)).astype(jnp.int32)
+    v0 = jnp.clip(jnp.floor(v), 0, max(h - 2, 0)).astype(jnp.int32)
+    u1 = jnp.minimum(u0 + 1, w - 1)
+    v1 = jnp.minimum(v0 + 1, h - 1)
+    du = (u - u0)[:, None]
+    dv = (v - v0)[:, None]
+    flat = feature_map.reshape(h * w, -1)
+
+    def at(vv, uu):
+        return jnp.take(flat, vv * w + uu, axis=0)
+
+    top = at(v0, u0) * (1 - du) + at(v0, u1) * du
+    bottom = at(v1, u0) * (1 - du) + at(v1, u1) * du
+    return top * (1 - dv) + bottom * dv
+
+
+def l2_normalize(x: jax.Array, axis: int = -1) -> jax.Array:
+    return x / jnp.sqrt(jnp.maximum(jnp.sum(x * x, axis=axis, keepdims=True), 1e-12))
+
+
+def _zero_mean_init(scale: float):
+    """LeCun-normal kernels with ``scale`` x the variance, centred over their inputs.
+
+    The head's input is a leaky ReLU output with a positive mean; centring each output channel's
+    kernel removes the random offset that mean would add, so outputs start centred on 0.
+    """
+    base = nn.initializers.variance_scaling(scale, "fan_in", "truncated_normal")
+
+    def init(key, shape, dtype=jnp.float32):
+        w = base(key, shape, dtype)
+        return w - jnp.mean(w, axis=(0, 1, 2), keepdims=True)
+
+    return init
+
+
+class UnsuperPoint(nn.Module):
+    """Backbone + score, position and descriptor heads (paper Fig. 1, section 2).
+
+    Input: images [B, H, W, 3] float in [0, 1], H and W multiples of 8.
+    Output: ``Predictions`` with a leading batch axis.
+    """
+
+    config: ModelConfig = ModelConfig()
+
+    @nn.compact
+    def __call__(self, images: jax.Array, train: bool = False) -> Predictions:
+        cfg = self.config
+        if images.ndim != 4 or images.shape[-1] != 3:
+            raise ValueError(f"expected images [B, H, W, 3], got shape {tuple(images.shape)}")
+        batch, height, width, _ = images.shape
+        check_image_size(height, width)
+        dtype = jnp.dtype(cfg.dtype)
+
+        def conv_bn_act(x, channels):
+            x = nn.Conv(channels, (3, 3), dtype=dtype)(x)
+            x = nn.BatchNorm(
+                use_running_average=not train, momentum=cfg.batch_norm_momentum, dtype=dtype
+            )(x)
+            return nn.leaky_relu(x, cfg.leaky_relu_slope)
+
+        x = ((images - _MEAN) / _STD).astype(dtype)
+        for i, channels in enumerate(cfg.backbone_channels):
+            x = conv_bn_act(x, channels)
+            if i in (1, 3, 5):
+                x = nn.max_pool(x, (2, 2), strides=(2, 2))
+
+        def head(out_channels, name, init_scale=1.0):
+            hidden = conv_bn_act(x, cfg.head_channels)
+            out = nn.Conv(
+                out_channels, (3, 3), dtype=dtype, kernel_init=_zero_mean_init(init_scale), name=name
+            )(hidden)
+            return out.astype(jnp.float32)
+
+        cells_h, cells_w = height // CELL, width // CELL
+        m = cells_h * cells_w
+        scores = nn.sigmoid(head(1, "score")).reshape(batch, m)
+        relative = nn.sigmoid(head(2, "position", cfg.position_init_scale)).reshape(batch, m, 2)
+        descriptor_map = head(cfg.descriptor_dim, "descriptor")
+        keypoints = relative_to_pixels(relative, cells_h, cells_w)
+        if cfg.interpolate_descriptors:
+            descriptors = jax.vmap(bilinear_sample)(descriptor_map, keypoints)
+        else:
+            descriptors = descriptor_map.reshape(batch, m, cfg.descriptor_dim)
+        # The hinge margins m_p = 1, m_n = 0.2 (section 4.3) are cosine similarities, as in
+        # SuperPoint whose descriptor loss the paper adopts: unit-length descriptors.
+        return Predictions(scores, relative, keypoints, l2_normalize(descriptors))
+
+
+def init_variables(key: jax.Array, config: ModelConfig = ModelConfig(), height=64, width=64):
+    """Parameters and BatchNorm statistics: ``{"params": ..., "batch_stats": ...}``.
+
+    The network is fully convolutional, so the variables do not depend on the image size.
+    """
+    model = UnsuperPoint(config)
+    return model.init(key, jnp.zeros((1, height, width, 3), jnp.float32), train=False)

@@ -1,0 +1,308 @@
+"""Self-supervised training (paper section 3): siamese branches, a jit data-parallel step, the loop.
+
+Branch A is the (photometrically augmented) image, branch B the same image warped by a random
+homography T and augmented independently. Both go through one network with shared parameters;
+``losses.total_loss`` compares them. The host only decodes and crops: homographies, warps and
+augmentation are sampled on the device inside the jitted step, from a key derived from the step
+number, so a resumed run sees exactly the randomness an uninterrupted one would.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import pathlib
+import time
+from typing import Any, Callable, Iterator
+
+import flax
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+from jax.sharding import NamedSharding, PartitionSpec as P
+
+from usp_jax import augment, geometry, losses
+from usp_jax import config as config_lib
+from usp_jax.model import Predictions, UnsuperPoint, init_variables
+
+log = logging.getLogger(__name__)
+
+
+class TrainingDiverged(RuntimeError):
+    """The loss or the gradients became NaN or inf."""
+
+
+@flax.struct.dataclass
+class TrainState:
+    """Everything that changes during training, as one pytree (checkpointed whole)."""
+
+    step: jax.Array  # int32 []
+    params: Any
+    batch_stats: Any
+    opt_state: Any
+    key: jax.Array  # uint32 [2], base key; step s uses fold_in(key, s)
+
+
+def make_optimizer(cfg: config_lib.OptimConfig) -> optax.GradientTransformation:
+    lr = cfg.learning_rate
+    if cfg.warmup_steps:
+        lr = optax.linear_schedule(0.0, cfg.learning_rate, cfg.warmup_steps)
+    adam = optax.adam(lr)
+    return optax.chain(optax.clip_by_global_norm(cfg.clip_norm), adam) if cfg.clip_norm else adam
+
+
+def create_state(config: config_lib.Config) -> TrainState:
+    key = jax.random.PRNGKey(config.seed)
+    init_key, train_key = jax.random.split(key)
+    variables = init_variables(init_key, config.model)
+    optimizer = make_optimizer(config.optim)
+    return TrainState(
+        step=jnp.zeros((), jnp.int32),
+        params=variables["params"],
+        batch_stats=variables["batch_stats"],
+        opt_state=optimizer.init(variables["params"]),
+        key=train_key,
+    )
+
+
+def make_branches(
+    key: jax.Array,
+    images: jax.Array,
+    homography_cfg: geometry.HomographyConfig,
+    photometric_cfg: augment.PhotometricConfig,
+) -> tuple[jax.Array, jax.Array, jax.Array]:
+    """Section 3: branch A = aug(image), branch B = aug(T(image)) with independent augmentations.
+
+    images: [B, H, W, 3] float in [0, 1]. Returns (images_a, images_b, T [B, 3, 3]).
+    """
+    batch, height, width, _ = images.shape
+    k_h, k_a, k_b = jax.random.split(key, 3)
+    homographies = jax.vmap(lambda k: geometry.sample_homography(k, height, width, homography_cfg))(
+        jax.random.split(k_h, batch)
+    )
+    warped, _ = jax.vmap(lambda im, h: geometry.warp_image(im, h, (height, width)))(
+        images, homographies
+    )
+    augment_all = jax.vmap(lambda k, im: augment.photometric_augment(k, im, photometric_cfg))
+    images_a = augment_all(jax.random.split(k_a, batch), images)
+    images_b = augment_all(jax.random.split(k_b, batch), warped)
+    return images_a, images_b, homographies
+
+
+def _prediction_stats(pred: Predictions) -> dict:
+    return {
+        "score_mean": jnp.mean(pred.scores),
+        "score_std": jnp.std(pred.scores),
+        "relative_std": jnp.std(pred.relative),
+        # Share of points in the outer 10% of their cell: the border pile-up peers reported.
+        "relative_at_edge": jnp.mean((pred.relative < 0.05) | (pred.relative > 0.95)),
+    }
+
+
+def train_step(
+    state: TrainState, images: jax.Array, config: config_lib.Config
+) -> tuple[TrainState, dict]:
+    """One optimisation step on a uint8 batch [B, H, W, 3]; a pure function of its inputs.
+
+    Returns the new state and a metrics dict (every loss term, K, mean d_k, score and position
+    statistics, ``finite``). A step whose loss, gradients or new parameters are not finite leaves
+    the state unchanged and reports ``finite = 0`` so the loop can stop on the last good state.
+    """
+    model = UnsuperPoint(config.model)
+    optimizer = make_optimizer(config.optim)
+    batch, height, width, _ = images.shape
+    images = images.astype(jnp.float32) / 255.0
+    step_key = jax.random.fold_in(state.key, state.step)
+    images_a, images_b, homographies = make_branches(
+        step_key, images, config.homography, config.photometric
+    )
+
+    def loss_fn(params):
+        # One forward over both branches: the siamese weights are shared, and BatchNorm sees both
+        # views of every image.
+        pred, updates = model.apply(
+            {"params": params, "batch_stats": state.batch_stats},
+            jnp.concatenate([images_a, images_b]),
+            train=True,
+            mutable=["batch_stats"],
+        )
+        pred_a = jax.tree.map(lambda x: x[:batch], pred)
+        pred_b = jax.tree.map(lambda x: x[batch:], pred)
+        loss, metrics = losses.total_loss(
+            pred_a, pred_b, homographies, height, width, config.loss
+        )
+        metrics.update({f"pred/{k}": v for k, v in _prediction_stats(pred).items()})
+        return loss, (metrics, updates["batch_stats"])
+
+    (loss, (metrics, batch_stats)), grads = jax.value_and_grad(loss_fn, has_aux=True)(
+        state.params
+    )
+    updates, opt_state = optimizer.update(grads, state.opt_state, state.params)
+    params = optax.apply_updates(state.params, updates)
+    grad_norm = optax.tree.norm(grads)
+    finite = jnp.isfinite(loss) & jnp.isfinite(grad_norm) & jnp.isfinite(optax.tree.norm(params))
+    new_state = TrainState(state.step + 1, params, batch_stats, opt_state, state.key)
+    new_state = jax.tree.map(lambda new, old: jnp.where(finite, new, old), new_state, state)
+    metrics.update({"grad_norm": grad_norm, "finite": finite.astype(jnp.float32)})
+    return new_state, metrics
+
+
+def data_mesh() -> jax.sharding.Mesh:
+    """A 1-D mesh over every device (all hosts): the batch is split along it.
+
+    Auto axes let XLA propagate the batch sharding through the vmapped per-image code.
+    """
+    return jax.make_mesh(
+        (jax.device_count(),), ("data",), axis_types=(jax.sharding.AxisType.Auto,)
+    )
+
+
+def jit_train_step(config: config_lib.Config, mesh: jax.sharding.Mesh) -> Callable:
+    """``train_step`` jitted data-parallel: batch sharded over ``mesh``, state replicated.
+
+    Under plain jit with sharded inputs XLA inserts the gradient all-reduce itself, and the
+    BatchNorm statistics are global across devices, so N devices compute what one would.
+    """
+    replicated = NamedSharding(mesh, P())
+    return jax.jit(
+        lambda state, images: train_step(state, images, config),
+        in_shardings=(replicated, NamedSharding(mesh, P("data"))),
+        out_shardings=(replicated, replicated),
+        donate_argnums=0,
+    )
+
+
+class MetricsWriter:
+    """Appends metrics to ``metrics.jsonl`` and TensorBoard event files (first process only)."""
+
+    def __init__(self, workdir: pathlib.Path, enabled: bool = True):
+        self.enabled = enabled
+        if not enabled:
+            return
+        from tensorboardX import SummaryWriter
+
+        self._jsonl = open(workdir / "metrics.jsonl", "a")
+        self._tb = SummaryWriter(str(workdir / "tensorboard"))
+
+    def write(self, step: int, metrics: dict[str, float]) -> None:
+        if not self.enabled:
+            return
+        self._jsonl.write(json.dumps({"step": step, **metrics}) + "\n")
+        self._jsonl.flush()
+        for name, value in metrics.items():
+            self._tb.add_scalar(name, value, step)
+
+    def close(self) -> None:
+        if self.enabled:
+            self._jsonl.close()
+            self._tb.close()
+
+
+def _progress_postfix(metrics: dict[str, float], steps_per_s: float, batch_size: int) -> dict:
+    return {
+        "steps/s": f"{steps_per_s:.2f}",
+        "img/s": f"{2 * batch_size * steps_per_s:.1f}",
+        "loss": f"{metrics['loss']:.4g}",
+        "usp": f"{metrics['loss/usp']:.4g}",
+        "uni": f"{metrics['loss/uni_xy']:.3g}",
+        "desc": f"{metrics['loss/desc']:.4g}",
+        "K": f"{metrics['usp/K']:.0f}",
+        "d": f"{metrics['usp/mean_d']:.2f}",
+    }
+
+
+def _check_finite(metrics: dict | None, step: int, mngr) -> None:
+    if metrics is not None and not float(metrics["finite"]):
+        raise TrainingDiverged(
+            f"loss became non-finite at step {step} (loss={float(metrics['loss'])}); stopped, "
+            f"last good checkpoint: step {mngr.latest_step()} in {mngr.directory}"
+        )
+
+
+def fit(
+    config: config_lib.Config,
+    workdir: str | pathlib.Path,
+    *,
+    progress: bool = True,
+    distributed: bool = False,
+    num_steps: int | None = None,
+) -> TrainState:
+    """Trains (or resumes) the run in ``workdir`` up to ``num_steps`` (default config.num_steps).
+
+    Re-running with the same workdir resumes from its latest complete checkpoint. Writes
+    ``config.json``, ``checkpoints/``, ``metrics.jsonl`` and ``tensorboard/`` into workdir.
+    Raises ``TrainingDiverged`` on a non-finite loss, keeping the last good checkpoint.
+    ``distributed=True`` calls ``jax.distributed.initialize()`` (multi-host: each process loads
+    its own slice of every global batch).
+    """
+    from tqdm.auto import tqdm
+
+    from usp_jax import checkpoint, data
+
+    if distributed:
+        jax.distributed.initialize()
+    workdir = pathlib.Path(workdir).expanduser().absolute()
+    workdir.mkdir(parents=True, exist_ok=True)
+    num_steps = config.num_steps if num_steps is None else num_steps
+    if config.batch_size % jax.device_count():
+        raise ValueError(
+            f"batch_size {config.batch_size} is not divisible by the {jax.device_count()} devices"
+        )
+    mesh = data_mesh()
+    is_main = jax.process_index() == 0
+    if is_main:
+        config_lib.save(config, workdir / "config.json")
+
+    dataset = data.make_dataset(
+        config.data,
+        config.batch_size // jax.process_count(),
+        seed=config.seed,
+        process_index=jax.process_index(),
+        process_count=jax.process_count(),
+    )
+    mngr = checkpoint.manager(workdir / "checkpoints", keep=config.keep_checkpoints)
+    replicated = NamedSharding(mesh, P())
+    batch_sharding = NamedSharding(mesh, P("data"))
+    state = jax.device_put(create_state(config), replicated)
+    if mngr.latest_step() is not None:
+        state = checkpoint.restore_state(mngr, state)
+        log.info("resumed from step %d", int(state.step))
+    start = int(state.step)
+    step_fn = jit_train_step(config, mesh)
+    writer = MetricsWriter(workdir, enabled=is_main)
+    bar = tqdm(
+        total=num_steps, initial=start, disable=not (progress and is_main), unit="step",
+        dynamic_ncols=True,
+    )
+    batches: Iterator[np.ndarray] = data.iterate(dataset, start)
+    last_log_time, last_log_step = time.perf_counter(), start
+    previous = None
+    try:
+        for step in range(start, num_steps):
+            local = next(batches)
+            images = jax.make_array_from_process_local_data(batch_sharding, local)
+            state, metrics = step_fn(state, images)
+            done = step + 1
+            # Checking the previous step while this one runs keeps the device busy.
+            _check_finite(previous, done - 1, mngr)
+            previous = metrics
+            if done % config.log_every and done % config.checkpoint_every and done != num_steps:
+                bar.update(1)
+                continue
+            metrics = {k: float(v) for k, v in jax.device_get(metrics).items()}
+            _check_finite(metrics, done, mngr)
+            now = time.perf_counter()
+            steps_per_s = (done - last_log_step) / max(now - last_log_time, 1e-9)
+            last_log_time, last_log_step = now, done
+            metrics.update({"steps_per_s": steps_per_s, **data.stats(dataset)})
+            writer.write(done, metrics)
+            bar.set_postfix(_progress_postfix(metrics, steps_per_s, config.batch_size))
+            bar.update(1)
+            if done % config.checkpoint_every == 0 or done == num_steps:
+                checkpoint.save(mngr, done, state, config)
+    finally:
+        mngr.wait_until_finished()
+        bar.close()
+        writer.close()
+    return state
