@@ -1,3 +1,5 @@
+import dataclasses
+
 import cv2
 import jax
 import numpy as np
@@ -15,8 +17,15 @@ SMALL = ModelConfig(
 
 
 @pytest.fixture(scope="module")
-def variables():
-    return init_variables(jax.random.PRNGKey(0), SMALL)
+def variables(photo):
+    """Random weights with BatchNorm statistics of one real batch, so that, as at the start of
+    training, positions spread over their cells and scores over (0, 1); the untouched running
+    statistics of a fresh init would put every point near its cell centre."""
+    random = init_variables(jax.random.PRNGKey(0), SMALL)
+    batch = np.stack([photo[:64, :64], photo[200:264, 200:264], photo[300:364, 100:164]])
+    calibrate = UnsuperPoint(dataclasses.replace(SMALL, batch_norm_momentum=0.0))
+    _, stats = calibrate.apply(random, batch / np.float32(255), train=True, mutable=["batch_stats"])
+    return {"params": random["params"], "batch_stats": stats["batch_stats"]}
 
 
 @pytest.fixture(scope="module")
@@ -61,8 +70,8 @@ def test_detect_returns_the_networks_points_sorted_by_score(detector, variables,
     features = detector.detect(image)
     predictions = UnsuperPoint(SMALL).apply(variables, image[None] / np.float32(255), train=False)
     order = np.argsort(-np.asarray(predictions.scores[0]), kind="stable")
-    np.testing.assert_allclose(features.keypoints, predictions.keypoints[0][order], atol=1e-5)
-    np.testing.assert_allclose(features.descriptors, predictions.descriptors[0][order], atol=1e-5)
+    np.testing.assert_allclose(features.keypoints, predictions.keypoints[0][order], atol=1e-4)
+    np.testing.assert_allclose(features.descriptors, predictions.descriptors[0][order], atol=1e-4)
 
 
 def test_gray_image_is_detected_as_replicated_rgb(detector, image):
@@ -180,8 +189,10 @@ def test_weights_round_trip_in_float16(variables, tmp_path):
 
 
 def test_save_weights_refuses_values_float16_cannot_hold(variables, tmp_path):
-    huge = jax.tree.map(lambda x: x, variables)
-    huge["batch_stats"] = jax.tree.map(lambda x: x * 0 + 1e6, variables["batch_stats"])
+    huge = {
+        "params": variables["params"],
+        "batch_stats": jax.tree.map(lambda x: np.full_like(x, 1e6), variables["batch_stats"]),
+    }
     with pytest.raises(ValueError, match="float16"):
         inference.save_weights(tmp_path / "w.npz", huge, SMALL)
 
@@ -235,10 +246,12 @@ def test_as_method_returns_every_candidate_for_uniform_evaluation(variables, ima
 
 def test_to_cv2_points_match_and_give_a_homography(detector, photo):
     # A shift by whole cells moves the (translation-equivariant) network's cells onto each
-    # other, so even random weights give matching descriptors away from the image border.
-    image = cv2.resize(photo, (96, 64), interpolation=cv2.INTER_AREA)
-    shift = np.array([[1, 0, 16], [0, 1, 8], [0, 0, 1]], np.float32)
-    warped = cv2.warpPerspective(image, shift, (96, 64))
+    # other, so even random weights match points further from the border than the network's
+    # receptive field (about 90 px), hence an image this large.
+    height, width = 160, 224
+    image = cv2.resize(photo, (width, height), interpolation=cv2.INTER_AREA)
+    shift = np.array([[1, 0, 16], [0, 1, 8], [0, 0, 1]], np.float64)
+    warped = cv2.warpPerspective(image, shift, (width, height))
     keypoints1, descriptors1 = inference.to_cv2(detector.detect(image))
     keypoints2, descriptors2 = inference.to_cv2(detector.detect(warped))
     assert all(isinstance(k, cv2.KeyPoint) for k in keypoints1)
@@ -247,7 +260,8 @@ def test_to_cv2_points_match_and_give_a_homography(detector, photo):
     p1 = np.float32([keypoints1[m.queryIdx].pt for m in matches])
     p2 = np.float32([keypoints2[m.trainIdx].pt for m in matches])
     correct = np.linalg.norm(p1 + shift[:2, 2] - p2, axis=1) < 1
-    assert correct.sum() >= 10 and correct.mean() > 0.5
-    homography, _ = cv2.findHomography(p1, p2, cv2.RANSAC, 3.0)
-    assert homography.shape == (3, 3)
-    np.testing.assert_allclose(homography / homography[2, 2], shift, atol=0.05)
+    assert correct.sum() >= 50 and correct.mean() > 0.5
+    homography, _ = cv2.findHomography(p1, p2, cv2.RANSAC, 1.0)
+    corners = np.array([[0, 0], [0, height - 1], [width - 1, 0], [width - 1, height - 1]])
+    error = evaluation.warp_points(corners, homography) - evaluation.warp_points(corners, shift)
+    assert np.linalg.norm(error, axis=1).mean() < 2

@@ -11,6 +11,8 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 
+from usp_jax.geometry import points_inside
+
 
 class Correspondences(NamedTuple):
     """Nearest-neighbour point-pairs from branch A to branch B.
@@ -51,12 +53,6 @@ def safe_sqrt(sq: jax.Array, tiny: float = 1e-12) -> jax.Array:
     return jnp.where(positive, jnp.sqrt(jnp.where(positive, sq, 1.0)), 0.0)
 
 
-def inside(xy: jax.Array, height: int, width: int) -> jax.Array:
-    """[..., 2] -> [...] bool: inside the image, [-0.5, W - 0.5] x [-0.5, H - 0.5] (pixel edges)."""
-    x, y = xy[..., 0], xy[..., 1]
-    return (x >= -0.5) & (x <= width - 0.5) & (y >= -0.5) & (y <= height - 0.5)
-
-
 def find_correspondences(
     xy_a_in_b: jax.Array,
     xy_b_in_a: jax.Array,
@@ -73,8 +69,9 @@ def find_correspondences(
     Points without a counterpart in the other view are masked out of the nearest-neighbour search,
     so they can neither pair nor attract a pair (peers note: unmasked borders drift).
     """
-    valid_a = inside(xy_a_in_b, height, width)
-    valid_b = inside(xy_b_in_a, height, width)
+    # Keypoints reach the outer pixel edges (-0.5 and W - 0.5), hence the negative border.
+    valid_a = points_inside(xy_a_in_b, height, width, border=-0.5)
+    valid_b = points_inside(xy_b_in_a, height, width, border=-0.5)
     distances = pairwise_distances(xy_a_in_b, xy_b)
     search = jnp.where(valid_b[None, :], jax.lax.stop_gradient(distances), jnp.inf)
     nearest = jnp.argmin(search, axis=1)

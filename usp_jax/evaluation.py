@@ -29,6 +29,8 @@ import cv2
 import numpy as np
 from tqdm import tqdm
 
+from usp_jax import data
+
 #: The correct distance rho of the paper, in pixels (RS, LE and MS).
 CORRECT_DISTANCE = 3.0
 #: The homography-accuracy tolerances epsilon of the paper, in pixels.
@@ -200,20 +202,18 @@ def scan_sequences(root: str | Path) -> list[PairFiles]:
 
 
 def read_image(path: str | Path) -> np.ndarray:
-    """Read an image file as uint8 ``[H, W, 3]`` RGB (grayscale files are replicated to 3 channels).
+    """Read an image file as uint8 ``[H, W, 3]`` RGB (``usp_jax.data.read_image``), >= 8 px a side.
 
     Deviation: KP2D feeds OpenCV's BGR order to its network; RGB is this project's convention.
     Raises ValueError naming the file when OpenCV cannot decode it or a side is under 8 px.
     """
-    bgr = cv2.imread(str(path), cv2.IMREAD_COLOR)
-    if bgr is None:
-        raise ValueError(f"{path}: unreadable image")
-    height, width = bgr.shape[:2]
+    image = data.read_image(path)
+    height, width = image.shape[:2]
     if min(height, width) < MIN_IMAGE_SIDE:
         raise ValueError(
             f"{path}: image is {width}x{height} px, need at least {MIN_IMAGE_SIDE} px per side"
         )
-    return cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
+    return image
 
 
 def read_pair(files: PairFiles) -> Pair:

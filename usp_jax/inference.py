@@ -55,12 +55,11 @@ def save_weights(path: str | pathlib.Path, variables: dict, model_config: ModelC
         {"params": variables["params"], "batch_stats": variables["batch_stats"]},
         sep=_SEPARATOR,
     )
-    arrays = {}
+    largest = np.finfo(np.float16).max
     for key, value in flat.items():
-        half = np.asarray(value, dtype=np.float16)
-        if not np.all(np.isfinite(half)):
-            raise ValueError(f"weight {key} does not fit in float16 (max |x| = 65504)")
-        arrays[key] = half
+        if np.any(np.abs(np.asarray(value)) > largest):
+            raise ValueError(f"weight {key} does not fit in float16 (|x| > {largest:g})")
+    arrays = {key: np.asarray(value, dtype=np.float16) for key, value in flat.items()}
     config_json = json.dumps(dataclasses.asdict(model_config))
     np.savez_compressed(path, **arrays, **{_CONFIG_KEY: np.array(config_json)})
 

@@ -1,0 +1,65 @@
+import json
+
+import jax
+import pytest
+
+from usp_jax.benchmark import OPENCV_DETECTORS, benchmark, format_benchmark, protocol_top_n
+from usp_jax.inference import Detector
+from usp_jax.model import ModelConfig, init_variables
+
+SMALL = ModelConfig(
+    backbone_channels=(8, 8, 8, 8, 16, 16, 16, 16), head_channels=16, descriptor_dim=16
+)
+
+
+@pytest.fixture(scope="module")
+def tiny_run():
+    detector = Detector(init_variables(jax.random.PRNGKey(0), SMALL), SMALL)
+    return benchmark(
+        detector, resolutions=((32, 48), (40, 56)), batch_sizes=(1, 2), repeats=1, warmup=0
+    )
+
+
+def test_benchmark_reports_every_method_resolution_and_batch(tiny_run):
+    rows = {(r["method"], r["height"], r["width"], r["batch"]): r for r in tiny_run["rows"]}
+    expected = {
+        (method, h, w, b)
+        for h, w in ((32, 48), (40, 56))
+        for method, b in [("UnsuperPoint", 1), ("UnsuperPoint", 2)]
+        + [(name, 1) for name in OPENCV_DETECTORS]
+    }
+    assert set(rows) == expected
+    for row in rows.values():
+        assert row["fps"] > 0 and row["first_call_s"] > 0
+        assert row["fps"] == pytest.approx(row["batch"] / row["median_s"])
+        assert row["top_n"] == protocol_top_n(row["height"], row["width"]) == 300
+    assert tiny_run["device"] == jax.devices()[0].device_kind
+    assert tiny_run["jax_version"] == jax.__version__
+    assert tiny_run["model"]["descriptor_dim"] == 16
+
+
+def test_benchmark_result_is_json_serialisable(tiny_run):
+    assert json.loads(json.dumps(tiny_run))["rows"] == tiny_run["rows"]
+
+
+def test_format_benchmark_is_the_papers_table_layout(tiny_run):
+    table = format_benchmark(tiny_run)
+    header = next(line for line in table.splitlines() if line.startswith("Detectors"))
+    assert "FPS @ 32x48" in header and "FPS @ 40x56" in header
+    labels = [line.split("|")[0].strip() for line in table.splitlines() if "|" in line]
+    # Classical detectors first, then UnsuperPoint per batch size, as in Table 5.
+    assert labels[1:7] == [*OPENCV_DETECTORS, "UnsuperPoint, b1", "UnsuperPoint, b2"]
+    assert "First call (s)" in labels
+
+
+def test_protocol_top_n_follows_the_evaluation_settings():
+    assert protocol_top_n(240, 320) == 300
+    assert protocol_top_n(480, 640) == 1000
+
+
+def test_benchmark_rejects_empty_settings():
+    detector = Detector(init_variables(jax.random.PRNGKey(0), SMALL), SMALL)
+    with pytest.raises(ValueError, match="repeats"):
+        benchmark(detector, repeats=0)
+    with pytest.raises(ValueError, match="batch sizes"):
+        benchmark(detector, batch_sizes=())

@@ -1,0 +1,78 @@
+import json
+
+import cv2
+import pytest
+
+from usp_jax.cli import main
+
+TINY = ["model.backbone_channels=(8, 8, 8, 8, 16, 16, 16, 16)", "model.head_channels=16",
+        "model.descriptor_dim=16", "data.height=32", "data.width=48", "batch_size=2",
+        "checkpoint_every=2", "log_every=1"]
+
+
+@pytest.fixture(scope="module")
+def pairs_dir(tmp_path_factory, photo):
+    root = tmp_path_factory.mktemp("cli")
+    images = root / "photos"
+    images.mkdir()
+    cv2.imwrite(str(images / "astronaut.png"), cv2.cvtColor(photo, cv2.COLOR_RGB2BGR))
+    assert main(["make-pairs", "--images", str(images), "--out", str(root / "pairs"),
+                 "--size", "120x160", "--no-progress"]) == 0
+    return root / "pairs"
+
+
+@pytest.fixture(scope="module")
+def workdir(tmp_path_factory):
+    work = tmp_path_factory.mktemp("run")
+    assert main(["train", "--data", "sample", "--workdir", str(work), "--config", "cpu",
+                 "--steps", "2", "--no-progress", *TINY]) == 0
+    return work
+
+
+def test_make_pairs_writes_hpatches_layout(pairs_dir):
+    assert sorted(p.name for p in pairs_dir.iterdir()) == ["i_astronaut", "v_astronaut"]
+    assert (pairs_dir / "v_astronaut" / "H_1_6").exists()
+
+
+def test_evaluate_baselines_prints_table_and_writes_json(pairs_dir, tmp_path, capsys):
+    out = tmp_path / "r.json"
+    assert main(["evaluate", "--hpatches", str(pairs_dir), "--baselines-only", "--baselines",
+                 "sift,orb", "--json", str(out), "--no-progress"]) == 0
+    assert "SIFT" in capsys.readouterr().out
+    assert {"SIFT", "ORB"} <= set(json.loads(out.read_text())["methods"])
+
+
+def test_train_resumes_and_the_checkpoint_detects_and_evaluates(workdir, pairs_dir, tmp_path,
+                                                                  photo, capsys):
+    assert main(["train", "--data", "sample", "--workdir", str(workdir), "--config", "cpu",
+                 "--steps", "4", "--no-progress", *TINY]) == 0
+    assert "done: step 4" in capsys.readouterr().out
+    image = tmp_path / "a.png"
+    cv2.imwrite(str(image), photo[:100, :150])
+    out = tmp_path / "k.json"
+    assert main(["detect", str(image), "--checkpoint", str(workdir), "--top", "20",
+                 "--json", str(out), "--out", str(tmp_path / "k.png")]) == 0
+    result = json.loads(out.read_text())
+    assert len(result["keypoints"]) == 20 and len(result["descriptors"][0]) == 16
+    assert (tmp_path / "k.png").stat().st_size > 0
+    assert main(["evaluate", "--hpatches", str(pairs_dir), "--checkpoint", str(workdir),
+                 "--baselines", "orb", "--plots", str(tmp_path / "plots"), "--no-progress"]) == 0
+    assert "UnsuperPoint" in capsys.readouterr().out
+    assert list((tmp_path / "plots").glob("*_matches.png"))
+
+
+@pytest.mark.parametrize(
+    "argv, message",
+    [
+        (["train", "--data", "{tmp}/missing", "--workdir", "{tmp}/w", "--steps", "1"], "missing"),
+        (["train", "--data", "sample", "--workdir", "{tmp}/w", "loss.nope=1"], "unknown config key"),
+        (["train", "--data", "sample", "--workdir", "{tmp}/w", "batch_size=five"], "batch_size"),
+        (["evaluate", "--hpatches", "{tmp}/nothing", "--baselines-only"], "nothing"),
+        (["detect", "{tmp}/absent.png", "--checkpoint", "{tmp}/none"], "none"),
+        (["make-pairs", "--images", "{tmp}/void", "--out", "{tmp}/o"], "void"),
+    ],
+)
+def test_user_errors_are_one_line_with_exit_status_2(argv, message, tmp_path, capsys):
+    assert main([a.format(tmp=tmp_path) for a in argv]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and message in err[0] and err[0].startswith("usp-jax")

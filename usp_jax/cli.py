@@ -1,0 +1,272 @@
+"""The ``usp-jax`` command: train, evaluate, make-pairs, benchmark, detect and demo.
+
+Every failure a user can cause (a missing folder, a corrupt image, a bad override) ends in one
+line on stderr and exit status 2, never a traceback.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import pathlib
+import sys
+import tempfile
+import time
+
+_USER_ERRORS = (FileNotFoundError, ValueError, NotADirectoryError, IsADirectoryError)
+
+
+def _resolution(text: str) -> tuple[int, int]:
+    try:
+        height, width = (int(v) for v in text.lower().split("x"))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"resolution {text!r} is not HxW, e.g. 240x320") from None
+    return height, width
+
+
+def _load_detector(args):
+    from usp_jax.inference import Detector
+
+    if getattr(args, "checkpoint", None):
+        return Detector.from_checkpoint(args.checkpoint)
+    return Detector.pretrained()
+
+
+def cmd_train(args) -> None:
+    from usp_jax import config as config_lib
+    from usp_jax import train
+
+    cfg = config_lib.load(args.config)
+    overrides = list(args.overrides)
+    if args.data:
+        overrides.insert(0, f"data.source={args.data}")
+    if args.steps is not None:
+        overrides.insert(0, f"num_steps={args.steps}")
+    cfg = config_lib.override(cfg, overrides)
+    print(f"training {args.config} config on {cfg.data.source} into {args.workdir}", file=sys.stderr)
+    state = train.fit(cfg, args.workdir, progress=not args.no_progress,
+                      distributed=args.distributed)
+    print(f"done: step {int(state.step)}; checkpoints in {pathlib.Path(args.workdir) / 'checkpoints'}")
+
+
+def _methods(args, detector):
+    from usp_jax import baselines
+    from usp_jax.inference import as_method
+
+    methods = [as_method(detector)] if detector is not None else []
+    # NMS is applied by the evaluation after each baseline's own top-N, so give baselines spare
+    # candidates when suppressing.
+    n = args.top * (4 if args.nms else 1)
+    for name in filter(None, (b.strip() for b in args.baselines.split(","))):
+        methods.append(baselines.opencv_method(name, n))
+    return methods
+
+
+def cmd_evaluate(args) -> None:
+    from usp_jax import evaluation
+
+    detector = None if args.baselines_only else _load_detector(args)
+    height, width = args.res
+    results = evaluation.evaluate(
+        _methods(args, detector), args.hpatches, height=height, width=width, top_k=args.top,
+        nms=args.nms, progress=not args.no_progress,
+    )
+    print(f"{args.hpatches} at {height}x{width}, top {args.top} points, NMS {args.nms}")
+    print(evaluation.format_table(results))
+    if args.json:
+        pathlib.Path(args.json).write_text(json.dumps(evaluation.to_json(results), indent=1))
+        print(f"wrote {args.json}")
+    if args.plots:
+        _plot_first_pair(detector, args.hpatches, args.plots, args.res, args.top)
+
+
+def _plot_first_pair(detector, root, out_dir, res, top):
+    """Keypoints and matches (paper Figures 7-8) on the hardest pair of the first scene."""
+    from usp_jax import evaluation, plotting
+
+    out_dir = pathlib.Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    pair = list(evaluation.load_sequences(root))[:5][-1]
+    im1, im2, h = evaluation.resize_pair(pair.image1, pair.image2, pair.homography, *res)
+    f1, f2 = (evaluation.top_k(detector.detect(im), top) for im in (im1, im2))
+    matching = evaluation.match_and_estimate(f1, f2, cv2_norm_l2())
+    stem = f"{pair.scene}_1_{pair.index}"
+    plotting.plot_keypoints(im1, f1.keypoints, im2, f2.keypoints, out_dir / f"{stem}_keypoints.png", H=h)
+    plotting.plot_matches(im1, im2, f1.keypoints, f2.keypoints, matching.matches,
+                          matching.inliers, h, matching.homography, out_dir / f"{stem}_matches.png")
+    print(f"wrote {out_dir / (stem + '_matches.png')}")
+
+
+def cv2_norm_l2():
+    import cv2
+
+    return cv2.NORM_L2
+
+
+def cmd_make_pairs(args) -> None:
+    from usp_jax.pairs import make_pairs
+
+    scenes = make_pairs(args.images, args.out, seed=args.seed, size=args.size,
+                        num_views=args.views, progress=not args.no_progress)
+    print(f"wrote {len(scenes)} scenes to {args.out}")
+
+
+def cmd_benchmark(args) -> None:
+    from usp_jax import benchmark
+
+    detector = _load_detector(args)
+    result = benchmark.benchmark(
+        detector, resolutions=tuple(args.res), batch_sizes=tuple(args.batch), top_n=args.top,
+        repeats=args.repeats, include_opencv=not args.no_opencv,
+    )
+    print(benchmark.format_benchmark(result))
+    if args.json:
+        pathlib.Path(args.json).write_text(json.dumps(result, indent=1))
+        print(f"wrote {args.json}")
+
+
+def cmd_detect(args) -> None:
+    from usp_jax import data, plotting
+
+    detector = _load_detector(args)
+    image = data.read_image(args.image)
+    features = detector.detect(image, top_n=args.top)
+    print(f"{args.image}: {len(features.keypoints)} keypoints")
+    if args.out:
+        plotting.plot_keypoints(image, features.keypoints, image, features.keypoints, args.out)
+        print(f"wrote {args.out}")
+    if args.json:
+        pathlib.Path(args.json).write_text(json.dumps({
+            "keypoints": features.keypoints.tolist(), "scores": features.scores.tolist(),
+            "descriptors": features.descriptors.tolist(),
+        }))
+        print(f"wrote {args.json}")
+
+
+# Package photos held out of the shipped weights' training corpus (experiments/build_corpus.py).
+DEMO_PHOTOS = ("coffee.png", "chelsea.png", "rocket.jpg")
+
+
+def cmd_demo(args) -> None:
+    """Shipped weights (or a short training on the bundled photos), pairs from bundled photos,
+    the evaluation table against ORB and SIFT, and a matches PNG."""
+    import skimage.data
+
+    from usp_jax import evaluation
+    from usp_jax.inference import Detector
+    from usp_jax.pairs import make_pairs
+
+    start = time.perf_counter()
+    out = pathlib.Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    try:
+        detector = Detector.pretrained()
+        print("model: the weights shipped with usp-jax")
+    except FileNotFoundError:
+        detector = _demo_training(out / "train")
+    photos_dir = pathlib.Path(skimage.data.__file__).parent
+    print("[2/3] building HPatches-layout pairs from the bundled photos", file=sys.stderr)
+    make_pairs([photos_dir / name for name in DEMO_PHOTOS], out / "pairs", seed=0, size=(480, 640),
+               progress=True)
+    print("[3/3] evaluating against ORB and SIFT", file=sys.stderr)
+    ns = argparse.Namespace(top=300, nms=0, baselines="orb,sift")
+    results = evaluation.evaluate(_methods(ns, detector), out / "pairs", height=240, width=320,
+                                  top_k=300, nms=0, progress=True)
+    print("\n240x320, top 300 points, pairs made from photos the shipped model never saw")
+    print(evaluation.format_table(results))
+    _plot_first_pair(detector, out / "pairs", out, (240, 320), 300)
+    print(f"demo finished in {time.perf_counter() - start:.0f} s; outputs in {out}")
+
+
+def _demo_training(workdir: pathlib.Path):
+    from usp_jax import config as config_lib
+    from usp_jax import train
+    from usp_jax.inference import Detector
+
+    print("[1/3] no shipped weights: a short training on the bundled photos", file=sys.stderr)
+    cfg = config_lib.override(config_lib.cpu(), ["num_steps=150", "checkpoint_every=150"])
+    train.fit(cfg, workdir)
+    return Detector.from_checkpoint(workdir)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="usp-jax", description="UnsuperPoint keypoints in JAX: train, evaluate, benchmark."
+    )
+    parser.add_argument("-v", "--verbose", action="store_true", help="log details")
+    sub = parser.add_subparsers(dest="command", required=True)
+
+    p = sub.add_parser("train", help="self-supervised training (resumes an existing workdir)")
+    p.add_argument("--data", help="image folder, tfds:NAME[:SPLIT], or 'sample' (bundled photos)")
+    p.add_argument("--workdir", required=True, help="checkpoints, config.json, metrics, TensorBoard")
+    p.add_argument("--config", default="paper", help="preset (paper, cpu) or experiments/*.py file")
+    p.add_argument("--steps", type=int, help="train up to this step (overrides num_steps)")
+    p.add_argument("--distributed", action="store_true",
+                   help="multi-host: call jax.distributed.initialize() first")
+    p.add_argument("--no-progress", action="store_true")
+    p.add_argument("overrides", nargs="*", metavar="KEY=VALUE",
+                   help="config overrides, e.g. loss.alpha_uni_xy=50 data.height=120")
+    p.set_defaults(func=cmd_train)
+
+    p = sub.add_parser("evaluate", help="HPatches/Oxford metrics vs OpenCV baselines")
+    p.add_argument("--checkpoint", help="training workdir or checkpoint (default: shipped weights)")
+    p.add_argument("--hpatches", required=True, help="HPatches- or Oxford-layout folder")
+    p.add_argument("--res", type=_resolution, default=(240, 320), help="HxW (default 240x320)")
+    p.add_argument("--top", type=int, default=300, help="points kept per image")
+    p.add_argument("--nms", type=int, default=0, choices=(0, 4), help="NMS radius in px")
+    p.add_argument("--baselines", default="orb,sift,akaze,brisk")
+    p.add_argument("--baselines-only", action="store_true", help="skip the learned model")
+    p.add_argument("--json", help="write aggregate and per-pair numbers here")
+    p.add_argument("--plots", help="folder for keypoint and match PNGs")
+    p.add_argument("--no-progress", action="store_true")
+    p.set_defaults(func=cmd_evaluate)
+
+    p = sub.add_parser("make-pairs", help="HPatches-layout pairs from any folder of photos")
+    p.add_argument("--images", required=True)
+    p.add_argument("--out", required=True)
+    p.add_argument("--size", type=_resolution, default=(480, 640), help="HxW of generated images")
+    p.add_argument("--views", type=int, default=6)
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--no-progress", action="store_true")
+    p.set_defaults(func=cmd_make_pairs)
+
+    p = sub.add_parser("benchmark", help="frames per second, model and OpenCV side by side")
+    p.add_argument("--checkpoint")
+    p.add_argument("--res", type=_resolution, nargs="+", default=[(240, 320), (480, 640)])
+    p.add_argument("--batch", type=int, nargs="+", default=[1, 10])
+    p.add_argument("--top", type=int, default=1000)
+    p.add_argument("--repeats", type=int, default=10)
+    p.add_argument("--no-opencv", action="store_true")
+    p.add_argument("--json")
+    p.set_defaults(func=cmd_benchmark)
+
+    p = sub.add_parser("detect", help="keypoints of one image")
+    p.add_argument("image")
+    p.add_argument("--checkpoint")
+    p.add_argument("--top", type=int, default=500)
+    p.add_argument("--out", help="PNG with the keypoints drawn")
+    p.add_argument("--json", help="keypoints, scores and descriptors as JSON")
+    p.set_defaults(func=cmd_detect)
+
+    p = sub.add_parser("demo", help="the whole pipeline on bundled photos, offline, in minutes")
+    p.add_argument("--out", default=str(pathlib.Path(tempfile.gettempdir()) / "usp-jax-demo"))
+    p.set_defaults(func=cmd_demo)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING,
+                        format="%(levelname)s %(name)s: %(message)s")
+    from usp_jax.train import TrainingDiverged
+
+    try:
+        args.func(args)
+    except (*_USER_ERRORS, TrainingDiverged) as err:
+        print(f"usp-jax {args.command}: error: {err}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print(f"usp-jax {args.command}: interrupted", file=sys.stderr)
+        return 130
+    return 0
