@@ -13,8 +13,14 @@ SMALL = ModelConfig(
 
 
 @pytest.fixture(scope="module")
-def tiny_run():
-    detector = Detector(init_variables(jax.random.PRNGKey(0), SMALL), SMALL)
+def detector():
+    # Jitted, the initialisation is one compile that the persistent cache (conftest) keeps.
+    variables = jax.jit(init_variables, static_argnums=1)(jax.random.PRNGKey(0), SMALL)
+    return Detector(variables, SMALL)
+
+
+@pytest.fixture(scope="module")
+def tiny_run(detector):
     return benchmark(
         detector, resolutions=((32, 48), (40, 56)), batch_sizes=(1, 2), repeats=1, warmup=0
     )
@@ -57,8 +63,7 @@ def test_protocol_top_n_follows_the_evaluation_settings():
     assert protocol_top_n(480, 640) == 1000
 
 
-def test_benchmark_rejects_empty_settings():
-    detector = Detector(init_variables(jax.random.PRNGKey(0), SMALL), SMALL)
+def test_benchmark_rejects_empty_settings(detector):
     with pytest.raises(ValueError, match="repeats"):
         benchmark(detector, repeats=0)
     with pytest.raises(ValueError, match="batch sizes"):

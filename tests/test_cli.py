@@ -39,7 +39,7 @@ def test_evaluate_baselines_prints_table_and_writes_json(pairs_dir, tmp_path, ca
     assert main(["evaluate", "--hpatches", str(pairs_dir), "--baselines-only", "--baselines",
                  "sift,orb", "--json", str(out), "--no-progress"]) == 0
     assert "SIFT" in capsys.readouterr().out
-    assert {"SIFT", "ORB"} <= set(json.loads(out.read_text())["methods"])
+    assert {"SIFT", "ORB"} <= set(json.loads(out.read_text())["summary"])
 
 
 def test_train_resumes_and_the_checkpoint_detects_and_evaluates(workdir, pairs_dir, tmp_path,

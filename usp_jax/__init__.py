@@ -10,6 +10,7 @@ from usp_jax.geometry import (
     warp_image,
     warp_points,
 )
+from usp_jax.inference import Detector, to_cv2
 from usp_jax.losses import (
     LossConfig,
     decorrelation_loss,

@@ -104,7 +104,9 @@ def benchmark(
     rows = []
     for height, width in resolutions:
         n = protocol_top_n(height, width) if top_n is None else top_n
-        resized = [cv2.resize(photo, (width, height), interpolation=cv2.INTER_AREA) for photo in photos]
+        resized = [
+            cv2.resize(photo, (width, height), interpolation=cv2.INTER_AREA) for photo in photos
+        ]
         frames = np.stack([resized[i % len(resized)] for i in range(max(batch_sizes))])
         for batch in batch_sizes:
             stack = frames[:batch]

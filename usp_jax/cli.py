@@ -44,7 +44,7 @@ def cmd_train(args) -> None:
     if args.steps is not None:
         overrides.insert(0, f"num_steps={args.steps}")
     cfg = config_lib.override(cfg, overrides)
-    print(f"training {args.config} config on {cfg.data.source} into {args.workdir}", file=sys.stderr)
+    print(f"training {args.config} config on {cfg.data.source} into {args.workdir}")
     state = train.fit(cfg, args.workdir, progress=not args.no_progress,
                       distributed=args.distributed)
     print(f"done: step {int(state.step)}; checkpoints in {pathlib.Path(args.workdir) / 'checkpoints'}")
@@ -92,7 +92,8 @@ def _plot_first_pair(detector, root, out_dir, res, top):
     f1, f2 = (evaluation.top_k(detector.detect(im), top) for im in (im1, im2))
     matching = evaluation.match_and_estimate(f1, f2, cv2_norm_l2())
     stem = f"{pair.scene}_1_{pair.index}"
-    plotting.plot_keypoints(im1, f1.keypoints, im2, f2.keypoints, out_dir / f"{stem}_keypoints.png", H=h)
+    plotting.plot_keypoints(im1, f1.keypoints, im2, f2.keypoints, out_dir / f"{stem}_keypoints.png",
+                            homography=h)
     plotting.plot_matches(im1, im2, f1.keypoints, f2.keypoints, matching.matches,
                           matching.inliers, h, matching.homography, out_dir / f"{stem}_matches.png")
     print(f"wrote {out_dir / (stem + '_matches.png')}")

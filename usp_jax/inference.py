@@ -221,6 +221,11 @@ def _padding(height: int, width: int) -> tuple[int, int]:
     return -height % CELL, -width % CELL
 
 
+def _check_size(shape: tuple[int, ...], height: int, width: int) -> None:
+    if min(height, width) < CELL:
+        raise ValueError(f"image of shape {shape} is smaller than {CELL} px on a side")
+
+
 def _as_rgb(image: Any) -> np.ndarray:
     """Validate one image and return it as uint8 [H, W, 3] (gray replicated to 3 channels)."""
     image = np.asarray(image)
@@ -229,8 +234,7 @@ def _as_rgb(image: Any) -> np.ndarray:
         raise ValueError(
             f"expected a uint8 HxWx3 RGB or HxW gray image, got shape {shape} dtype {image.dtype}"
         )
-    if min(shape[:2]) < CELL:
-        raise ValueError(f"image of shape {shape} is smaller than {CELL} px on a side")
+    _check_size(shape, *shape[:2])
     return np.repeat(image[:, :, None], 3, axis=2) if image.ndim == 2 else image
 
 
@@ -295,7 +299,7 @@ class Detector:
 
     @classmethod
     def from_checkpoint(cls, path: str | pathlib.Path, **options) -> Detector:
-        """The latest checkpoint of a training workdir (or its ``checkpoints/`` or a step folder)."""
+        """From the latest checkpoint of a training workdir, its ``checkpoints/`` or a step."""
         config, variables = checkpoint.load_variables(path)
         return cls(variables, config.model, **options)
 
@@ -305,8 +309,9 @@ class Detector:
         with importlib.resources.as_file(PRETRAINED_WEIGHTS) as path:
             if not path.is_file():
                 raise FileNotFoundError(
-                    f"no pretrained weights ship with usp-jax yet ({path} is missing); train a model"
-                    " with `usp-jax train ...` and load it with Detector.from_checkpoint(workdir)"
+                    f"no pretrained weights ship with usp-jax yet ({path} is missing); train a"
+                    " model with `usp-jax train --workdir WORKDIR --data IMAGES` and load it with"
+                    " Detector.from_checkpoint(WORKDIR) (`--checkpoint WORKDIR` in the CLI)"
                 )
             model_config, variables = load_weights(path)
         return cls(variables, model_config, **options)
@@ -326,11 +331,12 @@ class Detector:
         """:meth:`detect` for a uint8 [B, H, W, 3] stack (one compiled call) or a list of images
         of any sizes (one call per padded shape). Results are in input order."""
         if isinstance(images, np.ndarray) and images.ndim == 4:
-            if images.dtype != np.uint8 or images.shape[-1] != 3 or min(images.shape[1:3]) < CELL:
+            if images.dtype != np.uint8 or images.shape[-1] != 3:
                 raise ValueError(
-                    f"expected a uint8 [B, H, W, 3] stack with H, W >= {CELL}, got shape"
-                    f" {images.shape} dtype {images.dtype}"
+                    f"expected a uint8 [B, H, W, 3] stack, got shape {images.shape}"
+                    f" dtype {images.dtype}"
                 )
+            _check_size(images.shape, *images.shape[1:3])
             return self._run(images, top_n)
         rgb = [_as_rgb(image) for image in images]
         groups: dict[tuple[int, int], list[int]] = {}
@@ -392,7 +398,7 @@ def export(
     scores [B, K], descriptors [B, K, F], counts [B])`` with the detector's top_n, NMS and border;
     padding to whole cells happens inside. Read it back with :func:`load_exported`.
     """
-    _as_rgb(np.zeros((height, width, 3), np.uint8))  # same size check as detect
+    _check_size((height, width, 3), height, width)
     (batch_dim,) = (batch,) if isinstance(batch, int) else jax.export.symbolic_shape(batch)
     pad_h, pad_w = _padding(height, width)
 

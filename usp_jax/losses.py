@@ -29,6 +29,8 @@ class LossConfig:
     alpha_position: float = 1.0
     alpha_score: float = 2.0
     alpha_uni_xy: float = 100.0
+    # Not in the paper: the same uniform loss on the scores of each branch (see pair_loss).
+    alpha_uni_score: float = 1.0
     alpha_desc: float = 0.001
     alpha_decorr: float = 0.03
     lambda_d: float = 250.0
@@ -150,6 +152,11 @@ def pair_loss(
     uni = sum(
         uniform_loss(pred.relative[:, axis]) for pred in (pred_a, pred_b) for axis in (0, 1)
     )
+    # The score terms of eq. 5 are blind to a common shift of all scores (sum_k (d_k - mean d)
+    # = 0) while (s_A - s_B)^2 shrinks as the sigmoid saturates, so nothing stops every score
+    # sliding to 0, where gradients vanish: the collapse peers reported. A uniform target on the
+    # score distribution anchors it without touching the ranking the USP term learns.
+    uni_score = uniform_loss(pred_a.scores) + uniform_loss(pred_b.scores)
     c = correspondence.correspondence_matrix(corr, config.eps_descriptor)
     mask = (corr.valid_a[:, None] & corr.valid_b[None, :]).astype(jnp.float32)
     desc = descriptor_loss(
@@ -167,6 +174,7 @@ def pair_loss(
     terms = {
         "usp": config.alpha_usp * usp,
         "uni_xy": config.alpha_uni_xy * uni,
+        "uni_score": config.alpha_uni_score * uni_score,
         "desc": config.alpha_desc * desc,
         "decorr": config.alpha_decorr * decorr,
     }
