@@ -1,6 +1,7 @@
 import json
 
 import cv2
+import numpy as np
 import pytest
 
 from usp_jax.cli import main
@@ -70,9 +71,25 @@ def test_train_resumes_and_the_checkpoint_detects_and_evaluates(workdir, pairs_d
         (["evaluate", "--hpatches", "{tmp}/nothing", "--baselines-only"], "nothing"),
         (["detect", "{tmp}/absent.png", "--checkpoint", "{tmp}/none"], "none"),
         (["make-pairs", "--images", "{tmp}/void", "--out", "{tmp}/o"], "void"),
+        (["export", "--checkpoint", "{tmp}/none", "--weights", "{tmp}/w.npz"], "none"),
     ],
 )
 def test_user_errors_are_one_line_with_exit_status_2(argv, message, tmp_path, capsys):
     assert main([a.format(tmp=tmp_path) for a in argv]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and message in err[0] and err[0].startswith("usp-jax")
+
+
+def test_export_writes_weights_and_an_artifact_that_load_without_the_model(workdir, tmp_path,
+                                                                           photo):
+    from usp_jax import inference
+
+    weights, artifact = tmp_path / "w.npz", tmp_path / "detector.bin"
+    assert main(["export", "--checkpoint", str(workdir), "--weights", str(weights),
+                 "--artifact", str(artifact), "--res", "64x96", "--top", "10"]) == 0
+    config, variables = inference.load_weights(weights)
+    assert config.descriptor_dim == 16 and weights.stat().st_size > 0
+    image = photo[:64, :96]
+    expected = inference.Detector.from_checkpoint(workdir).detect(image, top_n=10)
+    (exported,) = inference.load_exported(artifact)(image[None])
+    np.testing.assert_allclose(exported.keypoints, expected.keypoints, atol=1e-3)

@@ -145,6 +145,22 @@ def cmd_detect(args) -> None:
         print(f"wrote {args.json}")
 
 
+def cmd_export(args) -> None:
+    from usp_jax import inference
+
+    detector = _load_detector(args)
+    if args.weights:
+        inference.save_weights(args.weights, detector.variables, detector.model_config)
+        print(f"wrote {args.weights} (float16)")
+    if args.artifact:
+        detector = inference.Detector(detector.variables, detector.model_config,
+                                      top_n=args.top, nms_radius=args.nms)
+        inference.export(detector, args.artifact, *args.res)
+        print(f"wrote {args.artifact} (jax.export, uint8 [b, {args.res[0]}, {args.res[1]}, 3])")
+    if not (args.weights or args.artifact):
+        raise ValueError("nothing to export: give --weights FILE.npz and/or --artifact FILE")
+
+
 # Package photos held out of the shipped weights' training corpus (experiments/build_corpus.py).
 DEMO_PHOTOS = ("coffee.png", "chelsea.png", "rocket.jpg")
 
@@ -249,6 +265,15 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", help="PNG with the keypoints drawn")
     p.add_argument("--json", help="keypoints, scores and descriptors as JSON")
     p.set_defaults(func=cmd_detect)
+
+    p = sub.add_parser("export", help="float16 weights file or a jax.export inference artifact")
+    p.add_argument("--checkpoint", help="training workdir or checkpoint (default: shipped weights)")
+    p.add_argument("--weights", help="write a float16 .npz (what Detector.pretrained() loads)")
+    p.add_argument("--artifact", help="write a serialised jax.export detector")
+    p.add_argument("--res", type=_resolution, default=(240, 320), help="artifact input HxW")
+    p.add_argument("--top", type=int, default=1000, help="artifact keeps this many points")
+    p.add_argument("--nms", type=int, default=0, help="artifact NMS radius in px")
+    p.set_defaults(func=cmd_export)
 
     p = sub.add_parser("demo", help="the whole pipeline on bundled photos, offline, in minutes")
     p.add_argument("--out", default=str(pathlib.Path(tempfile.gettempdir()) / "usp-jax-demo"))

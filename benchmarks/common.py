@@ -1,0 +1,214 @@
+"""Helpers shared by the benchmark scripts: timing, the matmul ceiling, FLOP counts, op profiles.
+
+Not part of the library. Every number a script prints comes from ``time_calls`` (median of
+repeated calls after warm-up, each call waited for), so JAX's asynchronous dispatch never hides
+work.
+"""
+
+from __future__ import annotations
+
+import collections
+import glob
+import os
+import platform
+import re
+import statistics
+import tempfile
+import time
+from typing import Callable
+
+import jax
+import jax.numpy as jnp
+
+from usp_jax.model import CELL, ModelConfig
+
+
+def time_calls(fn: Callable[[], object], repeats: int, warmup: int = 1) -> list[float]:
+    """Seconds of ``repeats`` calls of ``fn`` (after ``warmup`` untimed ones), each waited for."""
+    for _ in range(warmup):
+        jax.block_until_ready(fn())
+    times = []
+    for _ in range(repeats):
+        start = time.perf_counter()
+        jax.block_until_ready(fn())
+        times.append(time.perf_counter() - start)
+    return times
+
+
+def summary(times: list[float]) -> str:
+    """'median (min-max, n)' in milliseconds."""
+    ms = [1e3 * t for t in times]
+    return f"{statistics.median(ms):8.1f} ms (min {min(ms):.1f}, max {max(ms):.1f}, n={len(ms)})"
+
+
+def matmul_ceiling(n: int = 4096, repeats: int = 5) -> float:
+    """GFLOP/s of a jitted float32 [n, n] x [n, n] matmul: what this CPU sustains at best."""
+    a = jnp.ones((n, n), jnp.float32)
+    b = jnp.ones((n, n), jnp.float32)
+    matmul = jax.jit(jnp.matmul)
+    return 2 * n**3 / statistics.median(time_calls(lambda: matmul(a, b), repeats)) / 1e9
+
+
+def conv_layers(config: ModelConfig, height: int, width: int) -> list[tuple[int, int, int, int]]:
+    """(output pixels, in channels, out channels) of each 3x3 conv, in forward order: the
+    backbone, then per head its hidden and its output conv."""
+    layers, channels, pixels = [], 3, height * width
+    for i, out in enumerate(config.backbone_channels):
+        layers.append((pixels, channels, out))
+        channels = out
+        if i in (1, 3, 5):
+            pixels //= 4
+    assert pixels == (height // CELL) * (width // CELL)
+    for out in (1, 2, config.descriptor_dim):
+        layers += [(pixels, channels, config.head_channels), (pixels, config.head_channels, out)]
+    return layers
+
+
+def forward_gflop(config: ModelConfig, height: int, width: int) -> float:
+    """Multiply-adds x 2 of the network's convolutions for one image (13.6 for the paper's)."""
+    return sum(2 * p * 9 * cin * cout for p, cin, cout in conv_layers(config, height, width)) / 1e9
+
+
+def train_gflop(config: ModelConfig, height: int, width: int) -> float:
+    """Convolution GFLOP of forward + backward for one image: the backward has a data and a
+    weight gradient per conv, each as costly as the forward, except the data gradient of the
+    first conv (the input needs none)."""
+    first = conv_layers(config, height, width)[0]
+    return 3 * forward_gflop(config, height, width) - 2 * first[0] * 9 * first[1] * first[2] / 1e9
+
+
+def environment() -> str:
+    """One line naming the software and the machine load, for the README's tables."""
+    parts = [
+        f"python {platform.python_version()}",
+        f"jax {jax.__version__}",
+        f"devices {jax.device_count()}x{jax.devices()[0].platform}",
+        f"cpus {os.cpu_count()}",
+        f"load {' '.join(f'{x:.1f}' for x in os.getloadavg())}",
+    ]
+    if os.environ.get("XLA_FLAGS"):
+        parts.append(f"XLA_FLAGS={os.environ['XLA_FLAGS']}")
+    return ", ".join(parts)
+
+
+# ------------------------------------------------------------------------------------------------
+# Op profile
+
+
+def _hlo_sources(hlo_text: str) -> dict[str, tuple[str, str]]:
+    """Instruction name -> (op_name, innermost user function) from a compiled HLO module's text.
+
+    Fusions without metadata of their own borrow the first of their fused computation's.
+    """
+    tables: dict[str, dict[int, str]] = {"FileNames": {}, "FunctionNames": {}}
+    locations, frames, section = {}, {}, None
+    for line in hlo_text.splitlines():
+        if line in ("FileNames", "FunctionNames", "FileLocations", "StackFrames"):
+            section = line
+            continue
+        match = re.match(r"(\d+) (.*)$", line) if section else None
+        if not match:
+            section = None
+            continue
+        key, value = int(match.group(1)), match.group(2)
+        if section in tables:
+            tables[section][key] = value.strip('"')
+        elif section == "FileLocations":
+            locations[key] = int(re.search(r"function_name_id=(\d+)", value).group(1))
+        elif section == "StackFrames":
+            frames[key] = int(re.search(r"file_location_id=(\d+)", value).group(1))
+
+    def function(frame: int | None) -> str:
+        if frame is None or frame not in frames:
+            return ""
+        return tables["FunctionNames"].get(locations.get(frames[frame], -1), "")
+
+    sources, computation_source, calls, current = {}, {}, {}, None
+    for line in hlo_text.splitlines():
+        header = re.match(r"(?:ENTRY )?%([\w.\-]+) .*\{$", line)
+        if header:
+            current = header.group(1)
+            continue
+        inst = re.match(r"\s*(?:ROOT )?%([\w.\-]+) = ", line)
+        if not inst:
+            continue
+        op = re.search(r'op_name="([^"]*)"', line)
+        frame = re.search(r"stack_frame_id=(\d+)", line)
+        called = re.search(r"calls=%([\w.\-]+)", line)
+        if called:
+            calls[inst.group(1)] = called.group(1)
+        if op:
+            source = (op.group(1), function(int(frame.group(1)) if frame else None))
+            sources[inst.group(1)] = source
+            computation_source.setdefault(current, source)
+    for name, computation in calls.items():
+        if name not in sources and computation in computation_source:
+            sources[name] = computation_source[computation]
+    return sources
+
+
+_CATEGORIES = (
+    # (category, test on (op_name, function)); the first that matches wins.
+    ("augmentation: blur", lambda op, fn: fn == "gaussian_blur"),
+    ("augmentation: warp_image", lambda op, fn: fn in ("warp_image", "_pixel_grid")),
+    ("augmentation: other", lambda op, fn: fn in ("photometric_augment", "draw", "make_branches")
+     or "sample_homography" in fn),
+    ("conv backward", lambda op, fn: "conv_general_dilated" in op and "transpose(" in op),
+    ("conv forward", lambda op, fn: "conv_general_dilated" in op),
+    ("batchnorm", lambda op, fn: "BatchNorm" in op),
+    ("leaky_relu", lambda op, fn: "leaky_relu" in op),
+    ("max pool", lambda op, fn: fn == "max_pool_2x2" or "reduce_window" in op
+     or "select_and_scatter" in op),
+    ("descriptor sampling", lambda op, fn: fn.startswith("bilinear_sample") or fn == "l2_normalize"),
+    ("losses", lambda op, fn: fn in (
+        "usp_loss", "uniform_loss", "descriptor_loss", "decorrelation_loss", "pair_loss",
+        "total_loss", "find_correspondences", "pairwise_distances", "safe_sqrt",
+        "correspondence_matrix", "warp_points", "invert_homography", "points_inside",
+        "_normalise") or "pair_loss" in op),
+    ("optimizer, finiteness check", lambda op, fn: fn.startswith("train_step") or "adam" in op),
+)
+
+
+def op_profile(compiled, run: Callable[[], object], steps: int = 2) -> list[tuple[str, float]]:
+    """Thread-seconds per step by op category while ``run`` (which calls ``compiled``) runs.
+
+    Uses ``jax.profiler``; XLA:CPU traces every fused kernel but not library calls (Eigen
+    convolutions and matmuls), whose time is reported as "untraced library calls". Returns
+    [(category, ms per step)], largest first.
+    """
+    sources = _hlo_sources(compiled.as_text())
+    per_category: collections.Counter = collections.Counter()
+    with tempfile.TemporaryDirectory() as directory:
+        jax.block_until_ready(run())
+        with jax.profiler.trace(directory):
+            for _ in range(steps):
+                jax.block_until_ready(run())
+        path = sorted(glob.glob(os.path.join(directory, "**", "*.xplane.pb"), recursive=True))[-1]
+        profile = jax.profiler.ProfileData.from_file(path)
+    for plane in profile.planes:
+        for line in plane.lines:
+            if not line.name.startswith("tf_XLA"):
+                continue
+            events = sorted(line.events, key=lambda e: e.start_ns)
+            executes = [e for e in events if e.name == "ThunkExecutor::Execute"]
+            kernels = [e for e in events if not e.name.startswith(
+                ("ThunkExecutor", "Threadpool", "end: ", "Slinky"))]
+            for execute in executes:
+                inside = sum(
+                    e.duration_ns for e in kernels
+                    if execute.start_ns <= e.start_ns and e.end_ns <= execute.end_ns
+                )
+                per_category["untraced library calls (convolutions, dots)"] += (
+                    execute.duration_ns - inside)
+            for event in kernels:
+                op, fn = sources.get(event.name, ("", ""))
+                category = next((c for c, test in _CATEGORIES if test(op, fn)), "other")
+                per_category[category] += event.duration_ns
+    return [(c, ns / steps / 1e6) for c, ns in per_category.most_common()]
+
+
+def print_profile(rows: list[tuple[str, float]]) -> None:
+    total = sum(ms for _, ms in rows)
+    for category, ms in rows:
+        print(f"  {ms:9.1f} ms  {100 * ms / total:5.1f}%  {category}")
+    print(f"  {total:9.1f} ms  thread time per step in XLA thunks")
