@@ -6,8 +6,8 @@ Prepare COCO once in array_record form (needs TensorFlow and internet; see usp_j
     usp-jax train --config experiments/paper_coco.py --data tfds:coco/2017 --workdir runs/coco
 
 or, with the photos unpacked in a folder, ``--data /path/to/coco/train2017``. Re-running the same
-command resumes. Expected time: about a day on one H100-class GPU at the measured
-step rate; it is far out of reach of a CPU (~2 s per step on 2 cores).
+command resumes. Expected time: not yet measured on an accelerator; on 2 CPU cores a step takes
+~3 s (benchmarks/README.md), i.e. about 8 days for the 236,574 steps.
 """
 
 from usp_jax import config as config_lib

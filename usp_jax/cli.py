@@ -82,12 +82,15 @@ def cmd_evaluate(args) -> None:
 
 
 def _plot_first_pair(detector, root, out_dir, res, top):
-    """Keypoints and matches (paper Figures 7-8) on the hardest pair of the first scene."""
+    """Keypoints and matches (paper Figures 7-8) on the last (hardest) pair of the first
+    viewpoint scene, or of the first scene when there is none."""
     from usp_jax import evaluation, plotting
 
     out_dir = pathlib.Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
-    pair = list(evaluation.load_sequences(root))[:5][-1]
+    files = evaluation.scan_sequences(root)
+    first = next((f for f in files if f.split == "v"), files[0]).scene
+    pair = evaluation.read_pair([f for f in files if f.scene == first][-1])
     im1, im2, h = evaluation.resize_pair(pair.image1, pair.image2, pair.homography, *res)
     f1, f2 = (evaluation.top_k(detector.detect(im), top) for im in (im1, im2))
     matching = evaluation.match_and_estimate(f1, f2, cv2_norm_l2())
@@ -252,7 +255,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--checkpoint")
     p.add_argument("--res", type=_resolution, nargs="+", default=[(240, 320), (480, 640)])
     p.add_argument("--batch", type=int, nargs="+", default=[1, 10])
-    p.add_argument("--top", type=int, default=1000)
+    p.add_argument("--top", type=int, help="points kept (default: 300 up to 240x320, else 1000)")
     p.add_argument("--repeats", type=int, default=10)
     p.add_argument("--no-opencv", action="store_true")
     p.add_argument("--json")

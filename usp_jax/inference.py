@@ -33,7 +33,7 @@ from usp_jax import config as config_lib
 from usp_jax.evaluation import Features, Method
 from usp_jax.model import CELL, ModelConfig, UnsuperPoint
 
-#: Weights that ship inside the package (none yet: train with ``usp-jax train``).
+#: Weights that ship inside the package (experiments/RESULTS.md says how they were trained).
 PRETRAINED_WEIGHTS = importlib.resources.files("usp_jax") / "weights" / "unsuperpoint.npz"
 
 # Key of the JSON ModelConfig inside a weights file; parameter keys are "params/..." paths.

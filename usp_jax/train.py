@@ -24,7 +24,7 @@ from jax.sharding import NamedSharding, PartitionSpec as P
 
 from usp_jax import augment, geometry, losses
 from usp_jax import config as config_lib
-from usp_jax.model import Predictions, UnsuperPoint, init_variables
+from usp_jax.model import Predictions, UnsuperPoint, compiler_options, init_variables
 
 log = logging.getLogger(__name__)
 
@@ -170,6 +170,7 @@ def jit_train_step(config: config_lib.Config, mesh: jax.sharding.Mesh) -> Callab
         in_shardings=(replicated, NamedSharding(mesh, P("data"))),
         out_shardings=(replicated, replicated),
         donate_argnums=0,
+        compiler_options=compiler_options(),
     )
 
 

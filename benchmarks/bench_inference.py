@@ -1,0 +1,117 @@
+"""Inference speed: the jitted network + top-N against the matmul ceiling and PyTorch.
+
+For each batch size, on the same uint8 photo crops and in alternating blocks of calls: JAX
+(``UnsuperPoint.apply`` in eval mode and ``lax.top_k``, jitted with the library's compiler
+options), ``usp_jax.Detector.detect_batch`` (adds padding, NMS and the host round trip) and the
+PyTorch reference (``torch.inference_mode``, channels-last). GFLOP/s count the network's
+convolutions (13.6 GFLOP per 240x320 image); the ceiling is a 4096^2 float32 matmul measured in
+the same run.
+
+    python3 benchmarks/bench_inference.py                    # 240x320, batch 1 and 10
+    python3 benchmarks/bench_inference.py --size 480x640 --batch 1
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import statistics
+import time
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+import common
+from usp_jax import config as config_lib
+from usp_jax import data
+from usp_jax.model import ModelConfig, UnsuperPoint, compiler_options, init_variables
+
+
+def jax_detect(config: ModelConfig, top_n: int):
+    """jit(uint8 [B, H, W, 3] -> (scores, keypoints, descriptors) of the top_n points)."""
+    model = UnsuperPoint(config)
+
+    def detect(variables, images):
+        pred = model.apply(variables, images.astype(jnp.float32) / 255.0)
+        scores, index = jax.lax.top_k(pred.scores, top_n)
+
+        def take(x):
+            return jnp.take_along_axis(x, index[:, :, None], axis=1)
+
+        return scores, take(pred.keypoints), take(pred.descriptors)
+
+    return jax.jit(detect, compiler_options=compiler_options())
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--size", default="240x320", help="HxW (default 240x320)")
+    parser.add_argument("--batch", type=int, nargs="+", default=[1, 10])
+    parser.add_argument("--top", type=int, default=300, help="points kept per image")
+    parser.add_argument("--rounds", type=int, default=3, help="alternations of the methods")
+    parser.add_argument("--block", type=int, default=5, help="timed calls per round and method")
+    parser.add_argument("--no-torch", action="store_true")
+    parser.add_argument("--json", help="also write the results to this file")
+    args = parser.parse_args()
+
+    height, width = (int(v) for v in args.size.lower().split("x"))
+    config = ModelConfig()
+    variables = init_variables(jax.random.PRNGKey(0), config)
+    print(common.environment())
+    ceiling = common.matmul_ceiling()
+    gflop = common.forward_gflop(config, height, width)
+    print(f"{height}x{width}: {gflop:.1f} GFLOP per image; matmul ceiling {ceiling:.0f} GFLOP/s, "
+          f"so at most {ceiling / gflop:.1f} images/s")
+    detect = jax_detect(config, args.top)
+    from usp_jax.inference import Detector
+
+    detector = Detector(variables, config, top_n=args.top)
+    if not args.no_torch:
+        import torch
+        import torch_reference
+
+        reference = torch_reference.TorchUnsuperPoint(config).to(
+            memory_format=torch.channels_last).eval()
+        torch_reference.load_flax_variables(reference, variables)
+
+    sample = config_lib.override(config_lib.paper(), [
+        "data.source=sample", f"data.height={height}", f"data.width={width}"]).data
+    results = {"height": height, "width": width, "matmul_gflops": ceiling, "rows": []}
+    # One batch of the largest size, sliced: make_dataset(..., 1, ...) overflows grain's length.
+    photos = np.asarray(data.make_dataset(sample, max(max(args.batch), 2), seed=0)[0])
+    for batch in args.batch:
+        images = photos[:batch]
+        device_images = jax.device_put(images)
+        start = time.perf_counter()
+        compiled = detect.lower(variables, device_images).compile()
+        compile_s = time.perf_counter() - start
+        runs = {"JAX jit(apply + top_k)": lambda: compiled(variables, device_images),
+                "usp_jax.Detector.detect_batch": lambda: detector.detect_batch(images)}
+        if not args.no_torch:
+            torch_images = torch.from_numpy(images)
+
+            def run_torch():
+                x = torch_images.permute(0, 3, 1, 2).float().div_(255).contiguous(
+                    memory_format=torch.channels_last)
+                return torch_reference.detect(reference, x, args.top)
+
+            runs["torch inference_mode"] = run_torch
+        for run in runs.values():  # compiles the Detector, creates the oneDNN primitives
+            jax.block_until_ready(run())
+        times = common.interleaved(runs, args.rounds, args.block)
+        print(f"batch {batch} (JAX compile {compile_s:.1f} s):")
+        for name, t in times.items():
+            seconds = statistics.median(t)
+            rate = batch * gflop / seconds
+            print(f"  {name:32s} {common.summary(t)}  {batch / seconds:6.2f} img/s  "
+                  f"{rate:5.1f} GFLOP/s = {rate / ceiling:4.0%} of the ceiling")
+            results["rows"].append({"batch": batch, "method": name, "seconds": t,
+                                    "compile_s": compile_s})
+    if args.json:
+        with open(args.json, "w") as f:
+            json.dump(results, f, indent=1)
+
+
+if __name__ == "__main__":
+    main()
