@@ -34,7 +34,7 @@ def jax_detect(config: ModelConfig, top_n: int):
 
     def detect(variables, images):
         pred = model.apply(variables, images.astype(jnp.float32) / 255.0)
-        scores, index = jax.lax.top_k(pred.scores, top_n)
+        scores, index = jax.lax.top_k(pred.scores, min(top_n, pred.scores.shape[1]))
 
         def take(x):
             return jnp.take_along_axis(x, index[:, :, None], axis=1)

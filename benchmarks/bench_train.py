@@ -1,9 +1,10 @@
 """Side-by-side timing of one training step: usp_jax's jitted step against the PyTorch reference.
 
 Both run in this process on the same uint8 photo crops, in alternating blocks of steps so that
-machine-load drift hits both alike (``common.interleaved``). The JAX step is ``usp_jax.train.jit_train_step`` exactly as ``fit`` uses it
-(homography sampling, warp, photometric augmentation, one forward over both branches, all loss
-terms, backward, Adam, the finiteness guard, donated state); the PyTorch step does the same work
+machine-load drift hits both alike (``common.interleaved``). The JAX step is
+``usp_jax.train.jit_train_step`` exactly as ``fit`` uses it (homography sampling, warp,
+photometric augmentation, one forward over both branches, all loss terms, backward, Adam, the
+finiteness guard, donated state); the PyTorch step does the same work
 (``torch_reference.TrainStep``). Compile time is reported separately.
 
     python3 benchmarks/bench_train.py                 # paper setting: 240x320, batch 5 per branch

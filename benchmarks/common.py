@@ -35,7 +35,9 @@ def time_calls(fn: Callable[[], object], repeats: int, warmup: int = 1) -> list[
     return times
 
 
-def interleaved(runs: dict[str, Callable[[], object]], rounds: int, block: int) -> dict[str, list[float]]:
+def interleaved(
+    runs: dict[str, Callable[[], object]], rounds: int, block: int
+) -> dict[str, list[float]]:
     """Seconds per call of each function in ``runs``, timed in alternating blocks.
 
     Each round runs every function ``1 + block`` times in a row and times the last ``block``:
@@ -162,19 +164,24 @@ def _hlo_sources(hlo_text: str) -> dict[str, tuple[str, str]]:
     return sources
 
 
+def _is_conv(op: str, fn: str) -> bool:
+    return "conv_general_dilated" in op or fn == "_conv_few_outputs"
+
+
 _CATEGORIES = (
     # (category, test on (op_name, function)); the first that matches wins.
     ("augmentation: blur", lambda op, fn: fn == "gaussian_blur"),
     ("augmentation: warp_image", lambda op, fn: fn in ("warp_image", "_pixel_grid")),
     ("augmentation: other", lambda op, fn: fn in ("photometric_augment", "draw", "make_branches")
      or "sample_homography" in fn),
-    ("conv backward", lambda op, fn: "conv_general_dilated" in op and "transpose(" in op),
-    ("conv forward", lambda op, fn: "conv_general_dilated" in op),
+    ("conv backward", lambda op, fn: _is_conv(op, fn) and "transpose(" in op),
+    ("conv forward", _is_conv),
     ("batchnorm", lambda op, fn: "BatchNorm" in op),
     ("leaky_relu", lambda op, fn: "leaky_relu" in op),
-    ("max pool", lambda op, fn: fn == "max_pool_2x2" or "reduce_window" in op
-     or "select_and_scatter" in op),
-    ("descriptor sampling", lambda op, fn: fn.startswith("bilinear_sample") or fn == "l2_normalize"),
+    ("max pool", lambda op, fn: fn in ("max_pool_2x2", "_quadrants", "_max_pool_forward",
+                                       "_max_pool_backward") or "reduce_window" in op),
+    ("descriptor sampling", lambda op, fn: fn.startswith("bilinear_sample")
+     or fn == "l2_normalize"),
     ("losses", lambda op, fn: fn in (
         "usp_loss", "uniform_loss", "descriptor_loss", "decorrelation_loss", "pair_loss",
         "total_loss", "find_correspondences", "pairwise_distances", "safe_sqrt",
@@ -188,10 +195,11 @@ def op_profile(run: Callable[[], object], compiled, steps: int = 2) -> list[tupl
     """Wall-clock milliseconds per step by op category while ``run`` (which calls ``compiled``)
     runs, from a ``jax.profiler`` trace.
 
-    XLA:CPU traces every fused kernel it generates but not its library calls (Eigen convolutions
-    and matmuls): the wall time in which no traced kernel runs is reported as "untraced library
-    calls", and the traced time is split by the categories' share of the kernels' thread time.
-    Returns [(category, ms per step)], largest first.
+    XLA:CPU's trace events cover the kernels it generates, but library calls (Eigen convolutions
+    and matmuls) only in part, as their worker threads are not traced: the wall time in which no
+    traced kernel runs is reported as "untraced (library convolutions and matmuls)", and the
+    traced time is split by the categories' share of the kernels' thread time. Returns
+    [(category, ms per step)], largest first.
     """
     sources = _hlo_sources(compiled.as_text())
     thread_ns: collections.Counter = collections.Counter()
@@ -222,7 +230,7 @@ def op_profile(run: Callable[[], object], compiled, steps: int = 2) -> list[tupl
         reach = max(reach, end)
     total = sum(thread_ns.values())
     rows = [(c, ns * covered / total / steps / 1e6) for c, ns in thread_ns.most_common()]
-    rows.append(("untraced library calls (convolutions, dots)", (wall_ns - covered) / steps / 1e6))
+    rows.append(("untraced (library convolutions and matmuls)", (wall_ns - covered) / steps / 1e6))
     return sorted(rows, key=lambda row: -row[1])
 
 

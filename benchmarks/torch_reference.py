@@ -225,7 +225,8 @@ def total_loss(pred_a, pred_b, homographies: torch.Tensor, height: int, width: i
     sq = ((a_in_b**2).sum(-1)[:, :, None] + (keypoints_b**2).sum(-1)[:, None, :]
           - 2 * a_in_b @ keypoints_b.transpose(1, 2))
     distances = _safe_sqrt(sq)
-    search = torch.where(valid_b[:, None, :], distances.detach(), torch.full_like(distances, np.inf))
+    search = torch.where(valid_b[:, None, :], distances.detach(),
+                         torch.full_like(distances, np.inf))
     nearest = search.argmin(2)
     gathered = torch.gather(keypoints_b, 1, nearest[..., None].expand(-1, -1, 2))
     d = _safe_sqrt(((a_in_b - gathered) ** 2).sum(-1))
@@ -304,5 +305,8 @@ def detect(model: TorchUnsuperPoint, images: torch.Tensor, top_n: int):
     with torch.inference_mode():
         scores, _, keypoints, descriptors = model(images)
         top, index = torch.topk(scores, min(top_n, scores.shape[1]), dim=1)
-        return (top, torch.gather(keypoints, 1, index[..., None].expand(-1, -1, 2)),
-                torch.gather(descriptors, 1, index[..., None].expand(-1, -1, descriptors.shape[-1])))
+
+        def take(x):
+            return torch.gather(x, 1, index[..., None].expand(-1, -1, x.shape[-1]))
+
+        return top, take(keypoints), take(descriptors)
