@@ -31,7 +31,7 @@ import numpy as np
 from usp_jax import checkpoint
 from usp_jax import config as config_lib
 from usp_jax.evaluation import Features, Method
-from usp_jax.model import CELL, ModelConfig, UnsuperPoint
+from usp_jax.model import CELL, ModelConfig, UnsuperPoint, compiler_options
 
 #: Weights that ship inside the package (experiments/RESULTS.md says how they were trained).
 PRETRAINED_WEIGHTS = importlib.resources.files("usp_jax") / "weights" / "unsuperpoint.npz"
@@ -295,7 +295,9 @@ class Detector:
             nms_radius=self.nms_radius,
             border=self.border,
         )
-        self._forward = jax.jit(self._function, static_argnames="top_n")
+        self._forward = jax.jit(
+            self._function, static_argnames="top_n", compiler_options=compiler_options()
+        )
 
     @classmethod
     def from_checkpoint(cls, path: str | pathlib.Path, **options) -> Detector:
