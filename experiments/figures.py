@@ -21,7 +21,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from usp_jax import checkpoint, correspondence, data, geometry, plotting
+from usp_jax import checkpoint, data, geometry, losses, plotting
 from usp_jax.model import UnsuperPoint
 
 
@@ -38,11 +38,7 @@ def pair_statistics(checkpoint_dir, photos, height=240, width=320, seed=0):
         warped, _ = geometry.warp_image(image, h, (height, width))
         pred = model.apply(variables, jnp.stack([image, warped]))
         a, b = jax.tree.map(lambda x: x[0], pred), jax.tree.map(lambda x: x[1], pred)
-        corr = correspondence.find_correspondences(
-            geometry.warp_points(h, a.keypoints),
-            geometry.warp_points(geometry.invert_homography(h), b.keypoints),
-            b.keypoints, height, width, cfg.loss.eps_correspond,
-        )
+        corr = losses.branch_correspondences(a, b, h, height, width, cfg.loss.eps_correspond)
         return corr.d, corr.paired, pred.scores, pred.relative[..., 0]
 
     d, scores, rel_x = [], [], []

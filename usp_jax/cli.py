@@ -85,6 +85,7 @@ def _plot_first_pair(detector, root, out_dir, res, top):
     """Keypoints and matches (paper Figures 7-8) on the last (hardest) pair of the first
     viewpoint scene, or of the first scene when there is none."""
     from usp_jax import evaluation, plotting
+    from usp_jax.inference import as_method
 
     out_dir = pathlib.Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -93,19 +94,13 @@ def _plot_first_pair(detector, root, out_dir, res, top):
     pair = evaluation.read_pair([f for f in files if f.scene == first][-1])
     im1, im2, h = evaluation.resize_pair(pair.image1, pair.image2, pair.homography, *res)
     f1, f2 = (evaluation.top_k(detector.detect(im), top) for im in (im1, im2))
-    matching = evaluation.match_and_estimate(f1, f2, cv2_norm_l2())
+    matching = evaluation.match_and_estimate(f1, f2, as_method(detector).norm)
     stem = f"{pair.scene}_1_{pair.index}"
     plotting.plot_keypoints(im1, f1.keypoints, im2, f2.keypoints, out_dir / f"{stem}_keypoints.png",
                             homography=h)
     plotting.plot_matches(im1, im2, f1.keypoints, f2.keypoints, matching.matches,
                           matching.inliers, h, matching.homography, out_dir / f"{stem}_matches.png")
     print(f"wrote {out_dir / (stem + '_matches.png')}")
-
-
-def cv2_norm_l2():
-    import cv2
-
-    return cv2.NORM_L2
 
 
 def cmd_make_pairs(args) -> None:

@@ -122,6 +122,25 @@ def decorrelation_loss(descriptors: jax.Array, mode: str = "squared") -> jax.Arr
     return jnp.sum(off**2) if mode == "squared" else jnp.sum(off)
 
 
+def branch_correspondences(
+    pred_a: Predictions,
+    pred_b: Predictions,
+    homography: jax.Array,
+    height: int,
+    width: int,
+    eps_correspond: float = 4.0,
+) -> correspondence.Correspondences:
+    """Point-pairs of section 4 between unbatched branch predictions, T: [3, 3] from A to B."""
+    return correspondence.find_correspondences(
+        warp_points(homography, pred_a.keypoints),
+        warp_points(invert_homography(homography), pred_b.keypoints),
+        pred_b.keypoints,
+        height,
+        width,
+        eps_correspond,
+    )
+
+
 def pair_loss(
     pred_a: Predictions,
     pred_b: Predictions,
@@ -135,11 +154,7 @@ def pair_loss(
     homography: [3, 3] T, mapping branch-A pixels to branch-B pixels.
     Returns the scalar loss and a dict of metrics (every weighted term, K, mean d_k).
     """
-    a_in_b = warp_points(homography, pred_a.keypoints)
-    b_in_a = warp_points(invert_homography(homography), pred_b.keypoints)
-    corr = correspondence.find_correspondences(
-        a_in_b, b_in_a, pred_b.keypoints, height, width, config.eps_correspond
-    )
+    corr = branch_correspondences(pred_a, pred_b, homography, height, width, config.eps_correspond)
 
     usp, usp_metrics = usp_loss(
         pred_a.scores,
