@@ -1,6 +1,7 @@
 """The paper's Figures 4 and 5 for a trained model: histograms of point-pair distances d_k and of
 scores (Fig. 4), and of x-coordinate predictions inside the cell (Fig. 5), with and without the
-uniform loss when a second checkpoint trained without it is given.
+uniform loss when a second checkpoint trained without it is given; and, for a training workdir,
+the logged statistics against step (``training_curves.png``).
 
 The statistics come from the training framework itself (section 3): held-out photos, a random
 homography T per photo, both branches through the model in inference mode, point-pairs as in
@@ -15,6 +16,7 @@ About a minute on 2 CPU cores.
 from __future__ import annotations
 
 import argparse
+import json
 import pathlib
 
 import jax
@@ -73,6 +75,10 @@ def main() -> None:
     plotting.plot_histograms(series, out / "fig5_x_in_cell.png", bins=np.linspace(0, 8, 33),
                              xlabel="x inside the 8 px cell", density=True,
                              title="x-coordinate predictions (paper Fig. 5)")
+    metrics = pathlib.Path(args.checkpoint) / "metrics.jsonl"
+    if metrics.is_file():  # a training workdir: also its logged statistics over the run
+        rows = [json.loads(line) for line in metrics.read_text().splitlines() if line.strip()]
+        plotting.plot_training_curves(rows, out / "training_curves.png")
     print(f"median d_k {np.median(d):.2f} px over {d.size} pairs; score mean {scores.mean():.3f} "
           f"std {scores.std():.3f}; share of x within 0.4 px of a cell edge "
           f"{np.mean((rel_x < 0.05) | (rel_x > 0.95)):.3f}")

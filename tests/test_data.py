@@ -142,6 +142,14 @@ def test_process_slices_partition_the_global_batch(tmp_path):
         np.testing.assert_array_equal(np.concatenate([s[step] for s in shards]), single[step])
 
 
+def test_batches_of_one_image_are_the_crops_of_larger_batches(tmp_path):
+    config = data.DataConfig(source=str(_photo_folder(tmp_path)), **SMALL)
+    ones = data.iterate(data.make_dataset(config, 1, seed=2))
+    pairs = data.make_dataset(config, 2, seed=2)
+    singles = np.concatenate([next(ones) for _ in range(4)])
+    np.testing.assert_array_equal(singles, np.concatenate([pairs[0], pairs[1]]))
+
+
 def test_corrupt_file_is_skipped_with_one_warning_and_counted(tmp_path, caplog):
     _photo_folder(tmp_path, count=3)
     (tmp_path / "broken.jpg").write_bytes(b"\x00garbage" * 10)

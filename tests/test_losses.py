@@ -1,11 +1,13 @@
+import pathlib
+
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
 
 import usp_jax
-from usp_jax import geometry, losses
-from usp_jax.model import ModelConfig, UnsuperPoint, init_variables
+from usp_jax import correspondence, geometry, losses
+from usp_jax.model import ModelConfig, Predictions, UnsuperPoint, init_variables
 
 
 def test_uniform_loss_is_eq10_on_sorted_values():
@@ -153,3 +155,47 @@ def test_no_term_swamps_the_others_at_initialisation(photo):
     terms = {k: abs(float(metrics[f"loss/{k}"])) for k in ("usp", "uni_xy", "desc", "decorr")}
     print(terms)
     assert max(terms.values()) / min(terms.values()) < 100, terms
+
+
+def test_similarity_metrics_are_the_mean_over_positive_and_negative_pairs():
+    images = jax.random.uniform(jax.random.PRNGKey(4), (1, 32, 48, 3))
+    pred, _ = predict(SMALL, images)
+    pred = jax.tree.map(lambda x: x[0], pred)
+    _, metrics = losses.pair_loss(pred, pred, jnp.eye(3), 32, 48)
+    corr = losses.branch_correspondences(pred, pred, jnp.eye(3), 32, 48)
+    c = np.asarray(correspondence.correspondence_matrix(corr, 8.0))
+    visible = np.asarray(corr.valid_a)[:, None] & np.asarray(corr.valid_b)[None, :]
+    desc = np.asarray(pred.descriptors)
+    sim = desc @ desc.T
+    assert float(metrics["desc/sim_positive"]) == pytest.approx(sim[(c > 0) & visible].mean(), 1e-5)
+    assert float(metrics["desc/sim_negative"]) == pytest.approx(sim[(c == 0) & visible].mean(), 1e-5)
+
+    one_vector = jnp.tile(pred.descriptors[:1], (pred.descriptors.shape[0], 1))
+    collapsed = pred._replace(descriptors=one_vector)
+    _, metrics = losses.pair_loss(collapsed, collapsed, jnp.eye(3), 32, 48)
+    assert float(metrics["desc/sim_negative"]) == pytest.approx(1.0, 1e-5)
+
+
+def test_cpu_photos_descriptor_weights_keep_the_papers_balance_at_128x160():
+    """lambda_d x (positive pairs) / (negative pairs) at 128x160 with experiments/cpu_photos.py
+    is within 1.5x of its value at the paper's 240x320 with the paper's weights (with lambda_d
+    = 250 at 128x160 it is ~4x off and the descriptors collapse)."""
+    from usp_jax import config as config_lib
+
+    def balance(height, width, lambda_d):
+        grid = jnp.stack(jnp.meshgrid(jnp.arange(width // 8), jnp.arange(height // 8)), -1)
+        points = (grid.reshape(-1, 2) + 0.5) * 8 - 0.5
+        h = geometry.sample_homography(jax.random.PRNGKey(0), height, width)
+        pred = Predictions(
+            scores=jnp.zeros(len(points)), relative=jnp.full((len(points), 2), 0.5),
+            keypoints=points, descriptors=jnp.zeros((len(points), 4)))
+        corr = losses.branch_correspondences(pred, pred, h, height, width)
+        c = np.asarray(correspondence.correspondence_matrix(corr, 8.0))
+        visible = np.asarray(corr.valid_a)[:, None] & np.asarray(corr.valid_b)[None, :]
+        return lambda_d * np.sum(c * visible) / np.sum((1 - c) * visible)
+
+    paper = config_lib.paper().loss
+    cpu = config_lib.load(str(pathlib.Path(__file__).parents[1] / "experiments" / "cpu_photos.py")).loss
+    at_paper_size = balance(240, 320, paper.lambda_d)
+    assert 1 / 1.5 < balance(128, 160, cpu.lambda_d) / at_paper_size < 1.5
+    assert balance(128, 160, paper.lambda_d) / at_paper_size > 3

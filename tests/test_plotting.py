@@ -73,3 +73,14 @@ def test_plot_histograms_writes_png_of_fixed_size(tmp_path):
     )
     width, height = (round(inches * plotting.DPI) for inches in plotting.HISTOGRAM_INCHES)
     assert png_shape(path) == (height, width, 3)
+
+
+def test_plot_training_curves_draws_logged_metrics_and_skips_missing_keys(tmp_path):
+    rng = np.random.default_rng(0)
+    rows = [
+        {"step": 10 * (i + 1), "loss/usp": 300 - i + rng.normal(), "loss/uni_xy": 100.0,
+         "loss/desc": 80.0, "usp/mean_d": 2.6 - 0.01 * i, "desc/sim_negative": 0.3}
+        for i in range(40)
+    ]
+    path = plotting.plot_training_curves(rows, tmp_path / "curves.png", smooth=5)
+    assert png_shape(path) == (round(7.0 * plotting.DPI), round(11.0 * plotting.DPI), 3)

@@ -43,6 +43,8 @@ def cmd_train(args) -> None:
         overrides.insert(0, f"data.source={args.data}")
     if args.steps is not None:
         overrides.insert(0, f"num_steps={args.steps}")
+    if args.init:
+        overrides.insert(0, f"init_weights={args.init}")
     cfg = config_lib.override(cfg, overrides)
     print(f"training {args.config} config on {cfg.data.source} into {args.workdir}")
     state = train.fit(cfg, args.workdir, progress=not args.no_progress,
@@ -217,6 +219,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--workdir", required=True, help="checkpoints, config.json, metrics, TensorBoard")
     p.add_argument("--config", default="paper", help="preset (paper, cpu) or experiments/*.py file")
     p.add_argument("--steps", type=int, help="train up to this step (overrides num_steps)")
+    p.add_argument("--init", help="start from these weights (.npz from `usp-jax export`)")
     p.add_argument("--distributed", action="store_true",
                    help="multi-host: call jax.distributed.initialize() first")
     p.add_argument("--no-progress", action="store_true")

@@ -49,6 +49,9 @@ class Config:
     checkpoint_every: int = 2000
     keep_checkpoints: int = 3
     log_every: int = 50
+    # A weights file (``usp-jax export --weights``) to start from instead of a random init, to
+    # fine-tune on new data; the optimiser starts fresh. "" = random init.
+    init_weights: str = ""
 
 
 def paper() -> Config:

@@ -392,6 +392,9 @@ def _usable_crop(
     )
 
 
+_EPOCHS_LIMIT = 2**53  # crops per pipeline before it ends: ~10^8 years of training at 10^3/s
+
+
 def make_dataset(
     config: DataConfig,
     batch_size: int,
@@ -425,7 +428,9 @@ def make_dataset(
         grain.MapDataset.range(len(source))
         .seed(seed)
         .shuffle(seed=config.shuffle_seed)
-        .repeat(None)
+        # Endless in practice; grain's infinite repeat has length sys.maxsize, which a batch of 1
+        # keeps and Python's len() then cannot return.
+        .repeat(_EPOCHS_LIMIT // len(source))
         .random_map(crop)
     )
     # Global batch s holds crops [s * B, (s + 1) * B), B = batch_size * process_count: runs of

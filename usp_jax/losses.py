@@ -183,6 +183,13 @@ def pair_loss(
         config.margin_positive,
         config.margin_negative,
     )
+    # Mean similarity of positive and negative pairs: both near 1 means the descriptors have
+    # collapsed to one vector (the hinge's positive term, weighted lambda_d, outweighs the
+    # negatives when few cells compete; see experiments/cpu_photos.py).
+    sim = pred_a.descriptors @ pred_b.descriptors.T
+    positive_mask, negative_mask = c * mask, (1.0 - c) * mask
+    sim_positive = jnp.sum(sim * positive_mask) / jnp.maximum(jnp.sum(positive_mask), 1.0)
+    sim_negative = jnp.sum(sim * negative_mask) / jnp.maximum(jnp.sum(negative_mask), 1.0)
     decorr = decorrelation_loss(pred_a.descriptors, config.decorrelation) + decorrelation_loss(
         pred_b.descriptors, config.decorrelation
     )
@@ -198,7 +205,9 @@ def pair_loss(
         "loss": total,
         **{f"loss/{k}": v for k, v in terms.items()},
         **{f"usp/{k}": v for k, v in usp_metrics.items()},
-        "positives": jnp.sum(c * mask),
+        "positives": jnp.sum(positive_mask),
+        "desc/sim_positive": jax.lax.stop_gradient(sim_positive),
+        "desc/sim_negative": jax.lax.stop_gradient(sim_negative),
     }
     return total, metrics
 

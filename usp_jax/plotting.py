@@ -200,3 +200,39 @@ def plot_histograms(
     if arrays:
         axes.legend()
     return _save(figure, path)
+
+
+#: Panels of :func:`plot_training_curves`: title and the metrics.jsonl keys drawn in it.
+CURVE_PANELS = (
+    ("weighted loss terms (log)", ("loss/usp", "loss/uni_xy", "loss/desc", "loss/decorr")),
+    ("point-pairs: mean d_k (px)", ("usp/mean_d",)),
+    ("descriptor similarity", ("desc/sim_positive", "desc/sim_negative")),
+    ("scores", ("pred/score_mean", "pred/score_std")),
+)
+
+
+def plot_training_curves(
+    rows: list[dict], path: str | Path, panels=CURVE_PANELS, smooth: int = 10
+) -> Path:
+    """Training statistics against step, one panel per group of metrics (``metrics.jsonl`` rows
+    as written by ``train.fit``). Each curve is a running mean over ``smooth`` logged rows, so
+    the trend shows through batch noise; keys missing from the rows are skipped."""
+    steps = np.array([row["step"] for row in rows], dtype=np.float64)
+    figure = Figure(figsize=(11.0, 7.0), layout="constrained")
+    for axes, (title, keys) in zip(figure.subplots(2, 2).ravel(), panels):
+        for key in keys:
+            values = np.array([row.get(key, np.nan) for row in rows], dtype=np.float64)
+            if not np.any(np.isfinite(values)):
+                continue
+            window = max(1, min(smooth, values.size))
+            kernel = np.ones(window) / window
+            smoothed = np.convolve(values, kernel, mode="valid")
+            axes.plot(steps[window - 1 :], smoothed, label=key)
+        if title.endswith("(log)"):
+            axes.set_yscale("log")
+        axes.set_title(title)
+        axes.set_xlabel("step")
+        axes.grid(alpha=0.3)
+        if axes.lines:
+            axes.legend(fontsize="small")
+    return _save(figure, path)

@@ -56,6 +56,15 @@ def create_state(config: config_lib.Config) -> TrainState:
     key = jax.random.PRNGKey(config.seed)
     init_key, train_key = jax.random.split(key)
     variables = init_variables(init_key, config.model)
+    if config.init_weights:
+        from usp_jax import inference  # inference imports the evaluation stack; train need not
+
+        model_config, variables = inference.load_weights(config.init_weights)
+        if model_config != config.model:
+            raise ValueError(
+                f"{config.init_weights} holds a {model_config} network, the run configures "
+                f"{config.model}"
+            )
     optimizer = make_optimizer(config.optim)
     return TrainState(
         step=jnp.zeros((), jnp.int32),
