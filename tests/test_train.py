@@ -183,3 +183,12 @@ def test_four_devices_compute_what_one_device_computes():
     np.testing.assert_allclose(four["grad_norms"][0], one["grad_norms"][0], rtol=1e-4)
     # ...after which Adam's normalisation amplifies rounding in near-zero gradients a little.
     np.testing.assert_allclose(four["losses"], one["losses"], rtol=5e-3)
+
+
+def test_collapse_warnings_name_the_collapse_and_its_fix():
+    healthy = {"pred/score_std": 0.25, "pred/score_mean": 0.5, "desc/sim_negative": 0.2}
+    assert train.collapse_warnings(healthy) == {}
+    scores = train.collapse_warnings({**healthy, "pred/score_std": 0.003, "pred/score_mean": 0.005})
+    assert list(scores) == ["scores"] and "alpha_uni_score" in scores["scores"]
+    descriptors = train.collapse_warnings({**healthy, "desc/sim_negative": 0.97})
+    assert list(descriptors) == ["descriptors"] and "lambda_d" in descriptors["descriptors"]

@@ -222,6 +222,23 @@ def _progress_postfix(metrics: dict[str, float], steps_per_s: float, batch_size:
     }
 
 
+def collapse_warnings(metrics: dict[str, float]) -> dict[str, str]:
+    """The two collapses peers reported, read off one logged metrics row: {what: message}."""
+    warnings = {}
+    if metrics.get("pred/score_std", 1.0) < 0.02:
+        warnings["scores"] = (
+            f"scores have collapsed to a constant (std {metrics['pred/score_std']:.3g}, mean "
+            f"{metrics['pred/score_mean']:.3g}); loss.alpha_uni_score > 0 keeps them spread"
+        )
+    if metrics.get("desc/sim_negative", 0.0) > 0.9:
+        warnings["descriptors"] = (
+            f"descriptors have collapsed onto one vector (mean similarity of non-matching pairs "
+            f"{metrics['desc/sim_negative']:.2f}): the hinge's positives outweigh its negatives; "
+            f"lower loss.lambda_d in proportion to the cell count (250 suits 240x320)"
+        )
+    return warnings
+
+
 def _check_finite(metrics: dict | None, step: int, mngr) -> None:
     if metrics is not None and not float(metrics["finite"]):
         raise TrainingDiverged(
@@ -288,6 +305,7 @@ def fit(
     batches: Iterator[np.ndarray] = data.iterate(dataset, start)
     last_log_time, last_log_step = time.perf_counter(), start
     previous = None
+    warned: set[str] = set()
     try:
         for step in range(start, num_steps):
             local = next(batches)
@@ -306,6 +324,11 @@ def fit(
             steps_per_s = (done - last_log_step) / max(now - last_log_time, 1e-9)
             last_log_time, last_log_step = now, done
             metrics.update({"steps_per_s": steps_per_s, **data.stats(dataset)})
+            # Warn once per kind, after the first steps have had a chance to move away from init.
+            for what, message in (collapse_warnings(metrics) if done >= 100 else {}).items():
+                if what not in warned:
+                    warned.add(what)
+                    log.warning("step %d: %s", done, message)
             writer.write(done, metrics)
             bar.set_postfix(_progress_postfix(metrics, steps_per_s, config.batch_size))
             bar.update(1)
