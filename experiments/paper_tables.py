@@ -1,0 +1,86 @@
+"""Tables 2-3 of the paper beside ours: reads the JSON files ``usp-jax evaluate --json`` wrote and
+prints markdown with the paper's HPatches values next to each of our numbers.
+
+From the repository root, after the evaluation commands of RESULTS.md::
+
+    python3 experiments/paper_tables.py --results experiments/results > experiments/results/paper_tables.md
+
+Our numbers come from synthetic homography pairs of held-out photos, the paper's from HPatches:
+compare methods within a column, and our column with the paper's only for the ranking.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import pathlib
+
+# The paper's Table 2 (RS, LE) and Table 3 (HA at eps 1/3/5, MS; NMS 0 unless noted), HPatches.
+PAPER = {
+    "240x320": {
+        "ORB": {"rs": 0.532, "le": 1.429, "ha1": 0.131, "ha3": 0.422, "ha5": 0.540, "ms": 0.218},
+        "AKAZE": {"rs": 0.599, "le": 1.007, "ha1": 0.378, "ha3": 0.724, "ha5": 0.791, "ms": 0.311},
+        "BRISK": {"rs": 0.566, "le": 1.077, "ha1": 0.414, "ha3": 0.767, "ha5": 0.826, "ms": 0.258},
+        "SIFT": {"rs": 0.451, "le": 0.855, "ha1": 0.622, "ha3": 0.845, "ha5": 0.878, "ms": 0.304},
+        "UnsuperPoint": {
+            "rs": 0.645, "le": 0.832, "ha1": 0.579, "ha3": 0.855, "ha5": 0.903, "ms": 0.424,
+        },
+    },
+    "480x640": {
+        "ORB": {"rs": 0.525, "le": 1.430, "ha1": 0.286, "ha3": 0.607, "ha5": 0.710, "ms": 0.204},
+        "AKAZE": {"rs": 0.572, "le": 1.126, "ha1": 0.369, "ha3": 0.743, "ha5": 0.812, "ms": 0.289},
+        "BRISK": {"rs": 0.505, "le": 1.207, "ha1": 0.300, "ha3": 0.653, "ha5": 0.746, "ms": 0.211},
+        "SIFT": {"rs": 0.421, "le": 1.011, "ha1": 0.602, "ha3": 0.833, "ha5": 0.876, "ms": 0.265},
+        "UnsuperPoint": {
+            "rs": 0.612, "le": 0.991, "ha1": 0.493, "ha3": 0.843, "ha5": 0.905, "ms": 0.383,
+        },
+    },
+    "240x320 NMS 4": {
+        "SIFT": {"ha1": 0.636, "ha3": 0.829, "ha5": 0.871, "ms": 0.248},
+        "UnsuperPoint": {"ha1": 0.557, "ha3": 0.871, "ha5": 0.921, "ms": 0.501},
+    },
+}
+FILES = {
+    "240x320": "heldout_240x320.json",
+    "480x640": "heldout_480x640.json",
+    "240x320 NMS 4": "heldout_240x320_nms4.json",
+}
+TITLES = {"rs": "RS", "le": "LE", "ha1": "HA e=1", "ha3": "HA e=3", "ha5": "HA e=5", "ms": "MS"}
+
+
+def table(ours: dict, paper: dict, metrics: tuple[str, ...]) -> list[str]:
+    """Rows 'method | ours (paper) | ...' for every method we evaluated."""
+    lines = [
+        "| method | " + " | ".join(f"{TITLES[m]} ours (paper)" for m in metrics) + " |",
+        "|---|" + "---|" * len(metrics),
+    ]
+    for method, values in ours.items():
+        cells = []
+        for metric in metrics:
+            theirs = paper.get(method, {}).get(metric)
+            value = values["all"][metric]
+            ours_text = "-" if value is None else f"{value:.3f}"
+            cells.append(ours_text + (f" ({theirs:.3f})" if theirs is not None else ""))
+        lines.append(f"| {method} | " + " | ".join(cells) + " |")
+    return lines
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--results", required=True, help="folder with the evaluate --json files")
+    args = parser.parse_args()
+    folder = pathlib.Path(args.results)
+    out = []
+    for setting, name in FILES.items():
+        path = folder / name
+        if not path.is_file():
+            raise FileNotFoundError(f"{path} is missing: run the evaluation commands of RESULTS.md")
+        ours = json.loads(path.read_text())["summary"]
+        out += [f"### {setting}, {'300' if setting.startswith('240') else '1000'} points", ""]
+        metrics = ("ha1", "ha3", "ha5", "ms") if "NMS" in setting else tuple(TITLES)
+        out += table(ours, PAPER[setting], metrics) + [""]
+    print("\n".join(out).rstrip())
+
+
+if __name__ == "__main__":
+    main()

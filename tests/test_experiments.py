@@ -1,0 +1,49 @@
+"""The experiment scripts' own arithmetic: Table 1's configurations and relative changes."""
+
+import importlib.util
+import pathlib
+
+import pytest
+
+EXPERIMENTS = pathlib.Path(__file__).parents[1] / "experiments"
+
+
+def load(name):
+    spec = importlib.util.spec_from_file_location(name, EXPERIMENTS / f"{name}.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_table1_configurations_switch_exactly_the_three_modules():
+    table1 = load("table1")
+    base = table1.config_for("C4", "sample", 10)
+    assert base.model.interpolate_descriptors and base.loss.alpha_uni_xy == 100.0
+    assert base.loss.alpha_decorr == 0.03 and base.num_steps == 10
+    c0 = table1.config_for("C0", "sample", 10)
+    assert not c0.model.interpolate_descriptors
+    assert c0.loss.alpha_uni_xy == 0.0 and c0.loss.alpha_decorr == 0.0
+    # Everything else is the C4 run's: same data, descriptor weights and score term.
+    assert c0.data == base.data and c0.loss.lambda_d == base.loss.lambda_d
+    assert c0.loss.alpha_uni_score == base.loss.alpha_uni_score
+    c2 = table1.config_for("C2", "sample", 10)
+    assert c2.loss.alpha_uni_xy == 100.0 and c2.loss.alpha_decorr == 0.0
+
+
+def test_table1_changes_are_percent_of_c0_with_lower_le_counted_as_better():
+    table1 = load("table1")
+    c0 = {"rs": 0.5, "le": 2.0, "ha1": 0.2, "ha3": 0.4, "ha5": 0.5, "ms": 0.25}
+    c1 = {**c0, "rs": 0.55, "le": 1.5, "ms": 0.2}
+    changes = table1.relative_changes({"C0": c0, "C1": c1})
+    assert changes["C0"] == pytest.approx(dict.fromkeys(c0, 0.0))
+    assert changes["C1"]["rs"] == pytest.approx(10.0)
+    assert changes["C1"]["le"] == pytest.approx(25.0)
+    assert changes["C1"]["ms"] == pytest.approx(-20.0)
+
+
+def test_paper_tables_put_the_papers_value_beside_ours():
+    paper_tables = load("paper_tables")
+    ours = {"SIFT": {"all": {"rs": 0.6, "le": None}}, "Mine": {"all": {"rs": 0.7, "le": 1.0}}}
+    lines = paper_tables.table(ours, paper_tables.PAPER["240x320"], ("rs", "le"))
+    assert lines[2] == "| SIFT | 0.600 (0.451) | - (0.855) |"
+    assert lines[3] == "| Mine | 0.700 | 1.000 |"
