@@ -244,6 +244,8 @@ def total_loss(pred_a, pred_b, homographies: torch.Tensor, height: int, width: i
 
     uni_xy = sum(_uniform(r[..., axis]) for r in (relative_a, relative_b) for axis in (0, 1))
     uni_score = _uniform(scores_a) + _uniform(scores_b)
+    m = scores_a.shape[1]
+    score_mean = m * ((scores_a.mean(1) - 0.5) ** 2 + (scores_b.mean(1) - 0.5) ** 2)
 
     c = (distances.detach() <= config.eps_descriptor).float()
     mask = (valid_a[:, :, None] & valid_b[:, None, :]).float()
@@ -254,7 +256,8 @@ def total_loss(pred_a, pred_b, homographies: torch.Tensor, height: int, width: i
     decorr = (_decorrelation(desc_a, config.decorrelation)
               + _decorrelation(desc_b, config.decorrelation))
     per_pair = (config.alpha_usp * usp + config.alpha_uni_xy * uni_xy
-                + config.alpha_uni_score * uni_score + config.alpha_desc * desc
+                + config.alpha_score_mean * score_mean + config.alpha_uni_score * uni_score
+                + config.alpha_desc * desc
                 + config.alpha_decorr * decorr)
     return per_pair.mean()
 

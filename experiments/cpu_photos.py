@@ -30,9 +30,10 @@ def get_config() -> config_lib.Config:
             "data.scale_range=(0.25, 0.5)",
             "loss.lambda_d=62.5",
             "loss.alpha_desc=0.004",
-            "num_steps=50000",
-            "checkpoint_every=100",
-            "log_every=10",
+            "num_steps=10000",
+            "optim.decay_steps=10000",
+            "checkpoint_every=500",
+            "log_every=20",
             "keep_checkpoints=2",
         ],
     )

@@ -1,12 +1,14 @@
-"""Tables 2-3 of the paper beside ours: reads the JSON files ``usp-jax evaluate --json`` wrote and
-prints markdown with the paper's HPatches values next to each of our numbers.
+"""Tables 2-4 of the paper beside ours: reads the JSON files ``usp-jax evaluate --json`` and
+``usp-jax benchmark --json`` wrote and prints markdown with the paper's values next to ours.
 
-From the repository root, after the evaluation commands of RESULTS.md::
+From the repository root, after the evaluation and benchmark commands of RESULTS.md::
 
     python3 experiments/paper_tables.py --results experiments/results > experiments/results/paper_tables.md
 
-Our numbers come from synthetic homography pairs of held-out photos, the paper's from HPatches:
-compare methods within a column, and our column with the paper's only for the ranking.
+Our accuracy numbers come from synthetic homography pairs of held-out photos, the paper's from
+HPatches: compare methods within a column, and our column with the paper's only for the ranking.
+The paper's speeds are UnsuperPoint on a Titan X GPU and OpenCV on an i7-7700HQ; ours are
+whatever device ``benchmark.json`` names.
 """
 
 from __future__ import annotations
@@ -40,6 +42,16 @@ PAPER = {
         "UnsuperPoint": {"ha1": 0.557, "ha3": 0.871, "ha5": 0.921, "ms": 0.501},
     },
 }
+# The paper's speed table (frames per second at 240x320, 480x640).
+PAPER_FPS = {
+    "ORB": (91, 33),
+    "SIFT": (47, 12),
+    "AKAZE": (100, 18),
+    "BRISK": (18, 5),
+    "UnsuperPoint, b1": (119, 65),
+    "UnsuperPoint, b10": (323, 90),
+}
+SPEED_FILE = "benchmark.json"
 FILES = {
     "240x320": "heldout_240x320.json",
     "480x640": "heldout_480x640.json",
@@ -65,6 +77,30 @@ def table(ours: dict, paper: dict, metrics: tuple[str, ...]) -> list[str]:
     return lines
 
 
+def speed_table(benchmark: dict) -> list[str]:
+    """Rows 'detector | fps ours (paper) at 240x320 | ... at 480x640' from a benchmark JSON."""
+    resolutions = ((240, 320), (480, 640))
+    fps = {}
+    for row in benchmark["rows"]:
+        label = row["method"]
+        if label == "UnsuperPoint":
+            label = f"UnsuperPoint, b{row['batch']}"
+        fps[label, row["height"], row["width"]] = row["fps"]
+    lines = [
+        "| detector | " + " | ".join(f"FPS @ {h}x{w} ours (paper)" for h, w in resolutions) + " |",
+        "|---|" + "---|" * len(resolutions),
+    ]
+    for label in dict.fromkeys(key[0] for key in fps):
+        cells = []
+        for column, (h, w) in enumerate(resolutions):
+            value = fps.get((label, h, w))
+            theirs = PAPER_FPS.get(label, (None, None))[column]
+            text = "-" if value is None else f"{value:.1f}"
+            cells.append(text + (f" ({theirs})" if theirs is not None else ""))
+        lines.append(f"| {label} | " + " | ".join(cells) + " |")
+    return lines
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--results", required=True, help="folder with the evaluate --json files")
@@ -79,6 +115,15 @@ def main() -> None:
         out += [f"### {setting}, {'300' if setting.startswith('240') else '1000'} points", ""]
         metrics = ("ha1", "ha3", "ha5", "ms") if "NMS" in setting else tuple(TITLES)
         out += table(ours, PAPER[setting], metrics) + [""]
+    speed = folder / SPEED_FILE
+    if speed.is_file():
+        benchmark = json.loads(speed.read_text())
+        out += [
+            f"### Speed: UnsuperPoint on {benchmark['device']} ({benchmark['platform']}), "
+            f"OpenCV on {benchmark['host']}",
+            "",
+        ]
+        out += speed_table(benchmark) + [""]
     print("\n".join(out).rstrip())
 
 

@@ -20,6 +20,7 @@ def test_table1_configurations_switch_exactly_the_three_modules():
     base = table1.config_for("C4", "sample", 10)
     assert base.model.interpolate_descriptors and base.loss.alpha_uni_xy == 100.0
     assert base.loss.alpha_decorr == 0.03 and base.num_steps == 10
+    assert base.optim.decay_steps == 10
     c0 = table1.config_for("C0", "sample", 10)
     assert not c0.model.interpolate_descriptors
     assert c0.loss.alpha_uni_xy == 0.0 and c0.loss.alpha_decorr == 0.0
@@ -47,3 +48,16 @@ def test_paper_tables_put_the_papers_value_beside_ours():
     lines = paper_tables.table(ours, paper_tables.PAPER["240x320"], ("rs", "le"))
     assert lines[2] == "| SIFT | 0.600 (0.451) | - (0.855) |"
     assert lines[3] == "| Mine | 0.700 | 1.000 |"
+
+
+def test_speed_table_puts_the_papers_fps_beside_ours_per_batch():
+    paper_tables = load("paper_tables")
+    rows = [
+        {"method": "UnsuperPoint", "batch": 1, "height": 240, "width": 320, "fps": 14.06},
+        {"method": "UnsuperPoint", "batch": 10, "height": 240, "width": 320, "fps": 13.2},
+        {"method": "SIFT", "batch": 1, "height": 480, "width": 640, "fps": 20.0},
+    ]
+    lines = paper_tables.speed_table({"rows": rows})
+    assert lines[2] == "| UnsuperPoint, b1 | 14.1 (119) | - (65) |"
+    assert lines[3] == "| UnsuperPoint, b10 | 13.2 (323) | - (90) |"
+    assert lines[4] == "| SIFT | - (47) | 20.0 (12) |"

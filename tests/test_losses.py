@@ -31,6 +31,19 @@ def test_uniform_loss_small_for_even_spread_large_for_clusters():
     assert float(usp_jax.uniform_loss(clustered)) > 80.0
 
 
+def test_score_mean_loss_penalises_only_a_common_shift():
+    rng = np.random.default_rng(3)
+    s = rng.uniform(size=40)
+    expected = 40 * (np.mean(s) - 0.5) ** 2
+    assert float(losses.score_mean_loss(jnp.asarray(s))) == pytest.approx(expected, rel=1e-5)
+    # Any spread around a mean of 1/2 costs nothing, so the ranking is left to the USP terms.
+    spread = jnp.asarray(np.concatenate([s, 1.0 - s]))
+    assert float(losses.score_mean_loss(spread)) == pytest.approx(0.0, abs=1e-9)
+    # Each score's gradient is 2 (mean - 1/2), the same for all: it only counters the slide.
+    grad = jax.grad(losses.score_mean_loss)(jnp.full(8, 0.1))
+    np.testing.assert_allclose(grad, np.full(8, 2 * (0.1 - 0.5)), rtol=1e-6)
+
+
 def test_descriptor_loss_matches_numpy_loop():
     rng = np.random.default_rng(1)
     fa = rng.normal(size=(5, 4)).astype(np.float32)

@@ -6,6 +6,7 @@ import sys
 
 import cv2
 import jax
+import jax.numpy as jnp
 import numpy as np
 import pytest
 
@@ -81,6 +82,28 @@ def test_resuming_equals_an_uninterrupted_run(tmp_path):
     assert int(resumed.step) == int(straight.step) == 4
     for a, b in zip(params_of(resumed), params_of(straight)):
         np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-6)
+
+
+def test_learning_rate_follows_warmup_then_cosine_decay_to_zero():
+    cfg = config_lib.OptimConfig(learning_rate=1e-3, warmup_steps=10, decay_steps=100)
+    schedule = train.learning_rate(cfg)
+    steps = np.array([0, 5, 10, 35, 60, 110, 500])
+    after = np.clip(steps - 10, 0, 100)
+    expected = np.where(steps < 10, 1e-3 * steps / 10, 0.5e-3 * (1 + np.cos(np.pi * after / 100)))
+    np.testing.assert_allclose([float(schedule(s)) for s in steps], expected, rtol=1e-5, atol=1e-9)
+    constant = train.learning_rate(config_lib.OptimConfig(learning_rate=2e-3))
+    assert float(constant(0)) == float(constant(10**6)) == pytest.approx(2e-3)
+
+
+def test_parameters_stop_moving_once_the_rate_has_decayed_to_zero(tmp_path):
+    # Steps 1-2 use rates 1 and 0.5 of the peak, steps 3-4 rate 0.
+    cfg = tiny_config(**{"optim.decay_steps": 2})
+    two = train.fit(cfg, tmp_path / "two", progress=False, num_steps=2)
+    four = train.fit(cfg, tmp_path / "four", progress=False, num_steps=4)
+    first = train.fit(cfg, tmp_path / "one", progress=False, num_steps=1)
+    for a, b, c in zip(params_of(two), params_of(four), params_of(first)):
+        np.testing.assert_array_equal(a, b)
+    assert any(not np.array_equal(a, c) for a, c in zip(params_of(two), params_of(first)))
 
 
 def test_a_save_killed_midway_resumes_from_the_last_complete_checkpoint(tmp_path):
@@ -189,6 +212,21 @@ def test_collapse_warnings_name_the_collapse_and_its_fix():
     healthy = {"pred/score_std": 0.25, "pred/score_mean": 0.5, "desc/sim_negative": 0.2}
     assert train.collapse_warnings(healthy) == {}
     scores = train.collapse_warnings({**healthy, "pred/score_std": 0.003, "pred/score_mean": 0.005})
-    assert list(scores) == ["scores"] and "alpha_uni_score" in scores["scores"]
+    assert list(scores) == ["scores"] and "alpha_score_mean" in scores["scores"]
     descriptors = train.collapse_warnings({**healthy, "desc/sim_negative": 0.97})
     assert list(descriptors) == ["descriptors"] and "lambda_d" in descriptors["descriptors"]
+    ramp = train.collapse_warnings({**healthy, "pred/score_position_r2": 0.9})
+    assert list(ramp) == ["score ramp"] and "alpha_uni_score" in ramp["score ramp"]
+
+
+def test_score_position_r2_is_one_for_a_ramp_and_small_for_content():
+    grid = np.stack(np.meshgrid(np.arange(20.0), np.arange(15.0)), -1).reshape(1, -1, 2)
+    ramp = 0.02 * grid[..., 0] + 0.05 * grid[..., 1]
+    assert float(train.score_position_r2(jnp.asarray(ramp), jnp.asarray(grid))) == pytest.approx(1.0)
+    noise = np.random.default_rng(0).uniform(size=ramp.shape)
+    assert float(train.score_position_r2(jnp.asarray(noise), jnp.asarray(grid))) < 0.05
+    # Matches NumPy's correlation coefficients.
+    mixed = ramp + noise
+    expected = sum(np.corrcoef(mixed[0], grid[0, :, i])[0, 1] ** 2 for i in (0, 1))
+    got = float(train.score_position_r2(jnp.asarray(mixed), jnp.asarray(grid)))
+    assert got == pytest.approx(expected, rel=1e-4)

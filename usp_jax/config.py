@@ -31,6 +31,10 @@ class OptimConfig:
     warmup_steps: int = 0
     # Global-norm clipping, 0 = off (the paper does not clip).
     clip_norm: float = 0.0
+    # Cosine decay of the rate to 0 over this many steps after the warm-up (it then stays 0);
+    # 0 keeps the paper's constant rate. A short run ending at a low rate averages out the last
+    # steps' gradient noise, which a constant rate leaves in the final weights.
+    decay_steps: int = 0
 
 
 @dataclasses.dataclass(frozen=True)

@@ -29,8 +29,12 @@ class LossConfig:
     alpha_position: float = 1.0
     alpha_score: float = 2.0
     alpha_uni_xy: float = 100.0
-    # Not in the paper: the same uniform loss on the scores of each branch (see pair_loss).
-    alpha_uni_score: float = 1.0
+    # Not in the paper: M (mean score - 1/2)^2 per branch, against the score collapse (see
+    # pair_loss and score_mean_loss).
+    alpha_score_mean: float = 1.0
+    # Not in the paper either: the uniform loss of eq. 10 on each branch's scores. Off by default:
+    # a content-blind ramp of scores across the image satisfies it exactly (see pair_loss).
+    alpha_uni_score: float = 0.0
     alpha_desc: float = 0.001
     alpha_decorr: float = 0.03
     lambda_d: float = 250.0
@@ -85,6 +89,15 @@ def uniform_loss(values: jax.Array, low: float = 0.0, high: float = 1.0) -> jax.
     v = (jnp.sort(values, axis=-1) - low) / (high - low)
     line = jnp.arange(n, dtype=v.dtype) / max(n - 1, 1)
     return jnp.sum((v - line) ** 2, axis=-1)
+
+
+def score_mean_loss(scores: jax.Array, target: float = 0.5) -> jax.Array:
+    """M (mean(s) - target)^2 for the scores [M] of one image -> scalar.
+
+    Each score's gradient is 2 (mean(s) - target): it counters a common shift of all scores, the
+    one direction eq. 5 cannot see, and leaves their ranking and spread to the USP terms.
+    """
+    return scores.shape[-1] * (jnp.mean(scores, axis=-1) - target) ** 2
 
 
 def descriptor_loss(
@@ -169,8 +182,12 @@ def pair_loss(
     )
     # The score terms of eq. 5 are blind to a common shift of all scores (sum_k (d_k - mean d)
     # = 0) while (s_A - s_B)^2 shrinks as the sigmoid saturates, so nothing stops every score
-    # sliding to 0, where gradients vanish: the collapse peers reported. A uniform target on the
-    # score distribution anchors it without touching the ranking the USP term learns.
+    # sliding to 0, where gradients vanish: the collapse peers reported. Anchoring the mean at
+    # 1/2 removes that direction only. A uniform target on the score distribution (uni_score)
+    # also stops the slide, but the cheapest way to meet it is a ramp of scores across the
+    # image read off the zero padding, the same in both views: trained with it, the network
+    # scored a uniform grey image 0.06 at the top and 0.94 at the bottom.
+    score_mean = score_mean_loss(pred_a.scores) + score_mean_loss(pred_b.scores)
     uni_score = uniform_loss(pred_a.scores) + uniform_loss(pred_b.scores)
     c = correspondence.correspondence_matrix(corr, config.eps_descriptor)
     mask = (corr.valid_a[:, None] & corr.valid_b[None, :]).astype(jnp.float32)
@@ -196,6 +213,7 @@ def pair_loss(
     terms = {
         "usp": config.alpha_usp * usp,
         "uni_xy": config.alpha_uni_xy * uni,
+        "score_mean": config.alpha_score_mean * score_mean,
         "uni_score": config.alpha_uni_score * uni_score,
         "desc": config.alpha_desc * desc,
         "decorr": config.alpha_decorr * decorr,

@@ -207,7 +207,7 @@ CURVE_PANELS = (
     ("weighted loss terms (log)", ("loss/usp", "loss/uni_xy", "loss/desc", "loss/decorr")),
     ("point-pairs: mean d_k (px)", ("usp/mean_d",)),
     ("descriptor similarity", ("desc/sim_positive", "desc/sim_negative")),
-    ("scores", ("pred/score_mean", "pred/score_std")),
+    ("scores", ("pred/score_mean", "pred/score_std", "pred/score_position_r2")),
 )
 
 

@@ -44,11 +44,19 @@ class TrainState:
     key: jax.Array  # uint32 [2], base key; step s uses fold_in(key, s)
 
 
+def learning_rate(cfg: config_lib.OptimConfig) -> optax.Schedule:
+    """Step -> rate: linear warm-up from 0 (if any), then constant or cosine decay to 0."""
+    peak = optax.constant_schedule(cfg.learning_rate)
+    if cfg.decay_steps:
+        peak = optax.cosine_decay_schedule(cfg.learning_rate, cfg.decay_steps)
+    if not cfg.warmup_steps:
+        return peak
+    warmup = optax.linear_schedule(0.0, cfg.learning_rate, cfg.warmup_steps)
+    return optax.join_schedules([warmup, peak], [cfg.warmup_steps])
+
+
 def make_optimizer(cfg: config_lib.OptimConfig) -> optax.GradientTransformation:
-    lr = cfg.learning_rate
-    if cfg.warmup_steps:
-        lr = optax.linear_schedule(0.0, cfg.learning_rate, cfg.warmup_steps)
-    adam = optax.adam(lr)
+    adam = optax.adam(learning_rate(cfg))
     return optax.chain(optax.clip_by_global_norm(cfg.clip_norm), adam) if cfg.clip_norm else adam
 
 
@@ -99,10 +107,29 @@ def make_branches(
     return images_a, images_b, homographies
 
 
+def score_position_r2(scores: jax.Array, keypoints: jax.Array) -> jax.Array:
+    """How much of the score variation is a linear ramp across the image, mean over the batch.
+
+    scores [B, M], keypoints [B, M, 2] -> scalar in [0, 1]: per image corr(s, x)^2 + corr(s, y)^2
+    (x and y of the cell grid are uncorrelated, so this is the R^2 of a plane fit). Near 1, the
+    network scores where a point is rather than what it looks like: it has read its position off
+    the zero padding (see losses.pair_loss).
+    """
+
+    def r2(values, coordinate):
+        a = values - jnp.mean(values, axis=-1, keepdims=True)
+        b = coordinate - jnp.mean(coordinate, axis=-1, keepdims=True)
+        cov = jnp.sum(a * b, axis=-1)
+        return cov**2 / jnp.maximum(jnp.sum(a * a, axis=-1) * jnp.sum(b * b, axis=-1), 1e-20)
+
+    return jnp.mean(r2(scores, keypoints[..., 0]) + r2(scores, keypoints[..., 1]))
+
+
 def _prediction_stats(pred: Predictions) -> dict:
     return {
         "score_mean": jnp.mean(pred.scores),
         "score_std": jnp.std(pred.scores),
+        "score_position_r2": score_position_r2(pred.scores, pred.keypoints),
         "relative_std": jnp.std(pred.relative),
         # Share of points in the outer 10% of their cell: the border pile-up peers reported.
         "relative_at_edge": jnp.mean((pred.relative < 0.05) | (pred.relative > 0.95)),
@@ -223,12 +250,18 @@ def _progress_postfix(metrics: dict[str, float], steps_per_s: float, batch_size:
 
 
 def collapse_warnings(metrics: dict[str, float]) -> dict[str, str]:
-    """The two collapses peers reported, read off one logged metrics row: {what: message}."""
+    """The collapses peers reported, and the score ramp, read off one metrics row: {what: message}."""
     warnings = {}
     if metrics.get("pred/score_std", 1.0) < 0.02:
         warnings["scores"] = (
             f"scores have collapsed to a constant (std {metrics['pred/score_std']:.3g}, mean "
-            f"{metrics['pred/score_mean']:.3g}); loss.alpha_uni_score > 0 keeps them spread"
+            f"{metrics['pred/score_mean']:.3g}); loss.alpha_score_mean > 0 anchors their mean"
+        )
+    if metrics.get("pred/score_position_r2", 0.0) > 0.5:
+        warnings["score ramp"] = (
+            f"scores follow the position in the image, not its content (R^2 of a plane fit "
+            f"{metrics['pred/score_position_r2']:.2f}); loss.alpha_uni_score > 0 rewards such a "
+            f"ramp, loss.alpha_score_mean alone does not"
         )
     if metrics.get("desc/sim_negative", 0.0) > 0.9:
         warnings["descriptors"] = (
