@@ -95,6 +95,11 @@ def test_learning_rate_follows_warmup_then_cosine_decay_to_zero():
     assert float(constant(0)) == float(constant(10**6)) == pytest.approx(2e-3)
 
 
+def test_negative_schedule_lengths_are_a_clear_error():
+    with pytest.raises(ValueError, match="optim.decay_steps must be >= 0"):
+        tiny_config(**{"optim.decay_steps": -5})
+
+
 def test_parameters_stop_moving_once_the_rate_has_decayed_to_zero(tmp_path):
     # Steps 1-2 use rates 1 and 0.5 of the peak, steps 3-4 rate 0.
     cfg = tiny_config(**{"optim.decay_steps": 2})
@@ -213,6 +218,8 @@ def test_collapse_warnings_name_the_collapse_and_its_fix():
     assert train.collapse_warnings(healthy) == {}
     scores = train.collapse_warnings({**healthy, "pred/score_std": 0.003, "pred/score_mean": 0.005})
     assert list(scores) == ["scores"] and "alpha_score_mean" in scores["scores"]
+    # Near-constant scores at 1/2 are how a run starts before positions are repeatable.
+    assert train.collapse_warnings({**healthy, "pred/score_std": 0.015}) == {}
     descriptors = train.collapse_warnings({**healthy, "desc/sim_negative": 0.97})
     assert list(descriptors) == ["descriptors"] and "lambda_d" in descriptors["descriptors"]
     ramp = train.collapse_warnings({**healthy, "pred/score_position_r2": 0.9})

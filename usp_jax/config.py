@@ -36,6 +36,11 @@ class OptimConfig:
     # steps' gradient noise, which a constant rate leaves in the final weights.
     decay_steps: int = 0
 
+    def __post_init__(self):
+        for name in ("learning_rate", "warmup_steps", "clip_norm", "decay_steps"):
+            if getattr(self, name) < 0:
+                raise ValueError(f"optim.{name} must be >= 0, got {getattr(self, name)}")
+
 
 @dataclasses.dataclass(frozen=True)
 class Config:
