@@ -188,7 +188,11 @@ def pair_loss(
     # image read off the zero padding, the same in both views: trained with it, the network
     # scored a uniform grey image 0.06 at the top and 0.94 at the bottom.
     score_mean = score_mean_loss(pred_a.scores) + score_mean_loss(pred_b.scores)
-    uni_score = uniform_loss(pred_a.scores) + uniform_loss(pred_b.scores)
+    uni_score = (
+        uniform_loss(pred_a.scores) + uniform_loss(pred_b.scores)
+        if config.alpha_uni_score
+        else jnp.zeros(())  # off by default: skip its two sorts
+    )
     c = correspondence.correspondence_matrix(corr, config.eps_descriptor)
     mask = (corr.valid_a[:, None] & corr.valid_b[None, :]).astype(jnp.float32)
     desc = descriptor_loss(
