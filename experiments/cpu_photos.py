@@ -7,8 +7,8 @@ Build the corpus first (``experiments/build_corpus.py``), then::
 
 Crops are 128x160 cut from 25-50% of a photo's extent (instead of 240x320 from 50-100%), so image
 content appears at the same pixel scale as in the paper's 240x320 crops. 10,000 steps (50,000
-crops per branch) with the learning rate decaying from 1e-3 to 0 on a cosine; about 2.2 steps/s
-on 2 idle CPU cores (~75 min). Re-running resumes from the last checkpoint (every 500 steps).
+crops per branch) with the learning rate decaying from 1e-3 to 0 on a cosine; 2.09 steps/s
+on average on 2 CPU cores (81 min). Re-running resumes from the last checkpoint (every 500 steps).
 
 A 128x160 crop has M = 320 cells instead of 1,200, and the descriptor loss (eq. 13) sums over
 M x M pairs, of which only ~2.4 per point are positives: with the paper's lambda_d = 250 the

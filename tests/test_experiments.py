@@ -27,6 +27,7 @@ def test_table1_configurations_switch_exactly_the_three_modules():
     # Everything else is the C4 run's: same data, descriptor weights and score term.
     assert c0.data == base.data and c0.loss.lambda_d == base.loss.lambda_d
     assert c0.loss.alpha_uni_score == base.loss.alpha_uni_score
+    assert c0.loss.alpha_score_mean == base.loss.alpha_score_mean == 1.0
     c2 = table1.config_for("C2", "sample", 10)
     assert c2.loss.alpha_uni_xy == 100.0 and c2.loss.alpha_decorr == 0.0
 

@@ -253,7 +253,7 @@ def collapse_warnings(metrics: dict[str, float]) -> dict[str, str]:
     """The collapses peers reported, and the score ramp, read off one metrics row: {what: message}."""
     warnings = {}
     # Saturated and constant. A constant near 1/2 is the normal start under the mean anchor: the
-    # scores spread once positions become repeatable (~1,500 steps in experiments/cpu_photos.py).
+    # scores spread once positions become repeatable (~2,000 steps in experiments/cpu_photos.py).
     saturated = abs(metrics.get("pred/score_mean", 0.5) - 0.5) > 0.4
     if metrics.get("pred/score_std", 1.0) < 0.02 and saturated:
         warnings["scores"] = (
