@@ -7,7 +7,7 @@ The statistics come from the training framework itself (section 3): held-out pho
 homography T per photo, both branches through the model in inference mode, point-pairs as in
 section 4. From the repository root::
 
-    python3 experiments/figures.py --checkpoint runs/corpus-cpu --photos data/corpus/heldout \
+    python3 experiments/figures.py --checkpoint runs/corpus-cpu-stage2 --photos data/corpus/heldout \
         --out experiments/figures [--without-uniform runs/no-uniform]
 
 About a minute on 2 CPU cores.

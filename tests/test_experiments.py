@@ -62,3 +62,21 @@ def test_speed_table_puts_the_papers_fps_beside_ours_per_batch():
     assert lines[2] == "| UnsuperPoint, b1 | 14.1 (119) | - (65) |"
     assert lines[3] == "| UnsuperPoint, b10 | 13.2 (323) | - (90) |"
     assert lines[4] == "| SIFT | - (47) | 20.0 (12) |"
+
+
+def test_stage2_continues_stage1_with_a_new_seed_and_a_schedule_that_is_nearly_spent_at_its_last_step():
+    from usp_jax import config as config_lib
+    from usp_jax import train
+
+    stage1 = config_lib.load(str(EXPERIMENTS / "cpu_photos.py"))
+    stage2 = config_lib.load(str(EXPERIMENTS / "cpu_photos_stage2.py"))
+    # Same network, data and losses, so the stage-1 weights load and train on the same problem.
+    assert (stage2.model, stage2.data, stage2.loss) == (stage1.model, stage1.data, stage1.loss)
+    assert stage2.seed != stage1.seed
+    rate = train.learning_rate(stage2.optim)
+    peak = stage2.optim.learning_rate
+    assert float(rate(0)) == 0.0
+    assert float(rate(stage2.optim.warmup_steps)) == pytest.approx(peak)
+    # The run stops late on the cosine, where the last steps barely move the weights.
+    assert float(rate(stage2.num_steps - 1)) < 0.05 * peak
+    assert stage2.optim.warmup_steps + stage2.optim.decay_steps >= stage2.num_steps

@@ -30,6 +30,19 @@ def test_plot_keypoints_writes_a_two_panel_png(tmp_path):
     assert width == 2 * plotting.PANEL_INCHES * plotting.DPI and height > 0
 
 
+def test_plot_keypoints_draws_both_panels_at_one_size_with_points_on_the_far_edge(tmp_path):
+    """A target point at x = W (the far edge of the last pixel) used to widen that panel's limits
+    and draw it smaller and lower than the reference panel."""
+    red = np.zeros((48, 64, 3), np.uint8)
+    red[..., 0] = 255
+    edge = np.array([[64.0, 47.9], [0.0, 0.0]])
+    path = plotting.plot_keypoints(red, edge[1:], red, edge, tmp_path / "kp.png")
+    is_red = np.all(cv2.imread(str(path)) == (0, 0, 255), axis=-1)
+    half = is_red.shape[1] // 2
+    rows = [np.flatnonzero(side.sum(axis=1) > 20) for side in (is_red[:, :half], is_red[:, half:])]
+    assert (rows[0].min(), rows[0].max()) == (rows[1].min(), rows[1].max())
+
+
 def test_plot_keypoints_without_homography_or_points(tmp_path):
     image1, image2 = images()
     path = plotting.plot_keypoints(

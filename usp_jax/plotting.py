@@ -41,6 +41,13 @@ def _show(axes, image: np.ndarray, title: str) -> None:
     axes.set_axis_off()
 
 
+def _keep_view(axes, shape: tuple[int, ...]) -> None:
+    """Axis limits back on the image extent: points on the far pixel edge (x up to W) or warped
+    borders outside it would otherwise widen the limits and shrink that panel."""
+    axes.set_xlim(-0.5, shape[1] - 0.5)
+    axes.set_ylim(shape[0] - 0.5, -0.5)
+
+
 def _border(homography: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
     """Image border (corners in drawing order, closed) warped by ``homography``, [5, 2]."""
     corners = image_corners(shape)[[0, 2, 3, 1, 0]]
@@ -85,6 +92,8 @@ def plot_keypoints(
         s=30,
         linewidths=1.0,
     )
+    _keep_view(left, image1.shape)
+    _keep_view(right, image2.shape)
     handles.append(
         Line2D(
             [],
@@ -158,9 +167,7 @@ def plot_matches(
         subtitle = (
             f"corner error {corner_error(true_homography, estimated_homography, (h1, w1)):.2f} px"
         )
-    # Warped borders can leave the canvas; keep the view on the images.
-    axes.set_xlim(-0.5, canvas.shape[1] - 0.5)
-    axes.set_ylim(canvas.shape[0] - 0.5, -0.5)
+    _keep_view(axes, canvas.shape)
     figure.legend(handles=handles, loc="lower center", ncols=len(handles), frameon=False)
     figure.suptitle(f"{title} ({subtitle})")
     return _save(figure, path)
