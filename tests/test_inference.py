@@ -190,6 +190,22 @@ def test_weights_round_trip_in_float16(variables, tmp_path):
         np.testing.assert_allclose(restored, original, rtol=1e-3, atol=1e-4)
 
 
+def test_corrupt_or_truncated_weights_files_are_a_clear_error(variables, tmp_path):
+    junk = tmp_path / "junk.npz"
+    junk.write_bytes(b"not an npz")
+    good = tmp_path / "good.npz"
+    inference.save_weights(good, variables, SMALL)
+    truncated = tmp_path / "truncated.npz"
+    truncated.write_bytes(good.read_bytes()[: good.stat().st_size // 2])
+    for path in (junk, truncated):
+        with pytest.raises(ValueError, match="is not a readable .npz weights file"):
+            inference.load_weights(path)
+    array = tmp_path / "array.npy"
+    np.save(array, np.zeros(3))
+    with pytest.raises(ValueError, match="single .npy array"):
+        inference.load_weights(array)
+
+
 def test_save_weights_refuses_values_float16_cannot_hold(variables, tmp_path):
     huge = {
         "params": variables["params"],

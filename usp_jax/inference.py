@@ -19,6 +19,7 @@ import functools
 import importlib.resources
 import json
 import pathlib
+import zipfile
 from collections.abc import Sequence
 from typing import Any
 
@@ -69,7 +70,14 @@ def load_weights(path: str | pathlib.Path) -> tuple[ModelConfig, dict]:
     path = pathlib.Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"weights file {path} does not exist")
-    with np.load(path, allow_pickle=False) as data:
+    try:
+        data = np.load(path, allow_pickle=False)
+    except (OSError, ValueError, zipfile.BadZipFile) as error:
+        # numpy's own message for a non-zip file talks about pickles, which misleads.
+        raise ValueError(f"{path} is not a readable .npz weights file ({type(error).__name__})")
+    if not isinstance(data, np.lib.npyio.NpzFile):
+        raise ValueError(f"{path} is a single .npy array, not a usp-jax .npz weights file")
+    with data:
         if _CONFIG_KEY not in data:
             raise ValueError(f"{path} is not a usp-jax weights file (no {_CONFIG_KEY} entry)")
         model_config = config_lib.from_dict(json.loads(str(data[_CONFIG_KEY])), ModelConfig)
