@@ -6,7 +6,7 @@ falling (2.56 px at chance until ~2,000 steps, 1.87 px at 10,000): a warm restar
 peak rate gives the network more steps without re-learning what it has. A short warm-up lets the
 fresh Adam moments settle before full-size steps. The cosine is laid out over 14,000 steps but
 the run stops at 12,500, where the rate is down to 1.4e-5 (3% of its peak), so that the evaluation
-fitted the machine time (1.75 steps/s on average, 2 h). From the repository root::
+fitted the machine time (1.74 steps/s on average, 2 h). From the repository root::
 
     usp-jax export --checkpoint runs/corpus-cpu --weights runs/stage1.npz
     usp-jax train --config experiments/cpu_photos_stage2.py --init runs/stage1.npz \
