@@ -167,6 +167,19 @@ def test_init_weights_of_another_network_is_a_clear_error(tmp_path):
         train.create_state(tiny_config(init_weights=str(weights)))
 
 
+@pytest.mark.parametrize("bad", ["init", "data"])
+def test_a_bad_init_file_or_data_path_stops_the_run_before_it_writes_the_workdir(tmp_path, bad):
+    if bad == "init":
+        weights = tmp_path / "junk.npz"
+        weights.write_bytes(b"not a zip archive")
+        cfg, match = tiny_config(init_weights=str(weights)), "not a readable .npz"
+    else:
+        cfg, match = tiny_config(**{"data.source": str(tmp_path / "missing")}), "missing"
+    with pytest.raises((ValueError, FileNotFoundError), match=match):
+        train.fit(cfg, tmp_path / "run", progress=False)
+    assert not (tmp_path / "run").exists()
+
+
 def test_batch_not_divisible_by_devices_is_a_clear_error(tmp_path, monkeypatch):
     monkeypatch.setattr(jax, "device_count", lambda: 4)
     with pytest.raises(ValueError, match="not divisible by the 4 devices"):

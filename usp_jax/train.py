@@ -306,17 +306,14 @@ def fit(
     if distributed:
         jax.distributed.initialize()
     workdir = pathlib.Path(workdir).expanduser().absolute()
-    workdir.mkdir(parents=True, exist_ok=True)
     num_steps = config.num_steps if num_steps is None else num_steps
     if config.batch_size % jax.device_count():
         raise ValueError(
             f"batch_size {config.batch_size} is not divisible by the {jax.device_count()} devices"
         )
-    mesh = data_mesh()
-    is_main = jax.process_index() == 0
-    if is_main:
-        config_lib.save(config, workdir / "config.json")
-
+    # What can reject the inputs (the --init weights, the data path) runs before the workdir is
+    # written, so a bad argument leaves no half-made run behind to be resumed later.
+    initial = create_state(config)
     dataset = data.make_dataset(
         config.data,
         config.batch_size // jax.process_count(),
@@ -324,10 +321,16 @@ def fit(
         process_index=jax.process_index(),
         process_count=jax.process_count(),
     )
+    workdir.mkdir(parents=True, exist_ok=True)
+    mesh = data_mesh()
+    is_main = jax.process_index() == 0
+    if is_main:
+        config_lib.save(config, workdir / "config.json")
+
     mngr = checkpoint.manager(workdir / "checkpoints", keep=config.keep_checkpoints)
     replicated = NamedSharding(mesh, P())
     batch_sharding = NamedSharding(mesh, P("data"))
-    state = jax.device_put(create_state(config), replicated)
+    state = jax.device_put(initial, replicated)
     if mngr.latest_step() is not None:
         state = checkpoint.restore_state(mngr, state)
         log.info("resumed from step %d", int(state.step))
