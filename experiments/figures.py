@@ -1,14 +1,16 @@
 """The paper's Figures 4 and 5 for a trained model: histograms of point-pair distances d_k and of
 scores (Fig. 4), and of x-coordinate predictions inside the cell (Fig. 5), with and without the
 uniform loss when a second checkpoint trained without it is given; and, for a training workdir,
-the logged statistics against step (``training_curves.png``).
+the logged statistics against step (``training_curves.png``), over all stages of a run that was
+continued with ``--init`` when the earlier workdirs are given.
 
 The statistics come from the training framework itself (section 3): held-out photos, a random
 homography T per photo, both branches through the model in inference mode, point-pairs as in
 section 4. From the repository root::
 
-    python3 experiments/figures.py --checkpoint runs/corpus-cpu-stage2 --photos data/corpus/heldout \
-        --out experiments/figures [--without-uniform runs/no-uniform]
+    python3 experiments/figures.py --checkpoint runs/corpus-cpu-stage3 --photos data/corpus/heldout \
+        --out experiments/results/figures --earlier-stages runs/corpus-cpu runs/corpus-cpu-stage2 \
+        [--without-uniform runs/no-uniform]
 
 About a minute on 2 CPU cores.
 """
@@ -55,12 +57,38 @@ def pair_statistics(checkpoint_dir, photos, height=240, width=320, seed=0):
     return np.concatenate(d), np.concatenate(scores), np.concatenate(rel_x)
 
 
+def read_metrics(workdir) -> list[dict]:
+    path = pathlib.Path(workdir) / "metrics.jsonl"
+    if not path.is_file():
+        return []
+    return [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
+
+
+def chain_stages(stages: list[list[dict]]) -> tuple[list[dict], list[int]]:
+    """One step axis over training stages that each count from step 1 (a run started with
+    ``--init`` has a fresh step counter). Returns the rows with steps offset by the earlier
+    stages' last steps, and the offset step at which each later stage begins.
+
+    A run resumed after a kill logs the steps after its last checkpoint again; the later row of
+    a step wins, as it is the one the kept weights went through."""
+    rows, starts, offset = [], [], 0
+    for index, stage in enumerate(stages):
+        latest = {row["step"]: row for row in stage}
+        if index:
+            starts.append(offset)
+        rows += [{**row, "step": step + offset} for step, row in sorted(latest.items())]
+        offset += max(latest, default=0)
+    return rows, starts
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--checkpoint", required=True)
     parser.add_argument("--photos", required=True)
     parser.add_argument("--out", required=True)
     parser.add_argument("--without-uniform", help="checkpoint of a run with loss.alpha_uni_xy=0")
+    parser.add_argument("--earlier-stages", nargs="*", default=[], metavar="WORKDIR",
+                        help="workdirs of the stages before --checkpoint, in training order")
     args = parser.parse_args()
     out = pathlib.Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -75,10 +103,10 @@ def main() -> None:
     plotting.plot_histograms(series, out / "fig5_x_in_cell.png", bins=np.linspace(0, 8, 33),
                              xlabel="x inside the 8 px cell", density=True,
                              title="x-coordinate predictions (paper Fig. 5)")
-    metrics = pathlib.Path(args.checkpoint) / "metrics.jsonl"
-    if metrics.is_file():  # a training workdir: also its logged statistics over the run
-        rows = [json.loads(line) for line in metrics.read_text().splitlines() if line.strip()]
-        plotting.plot_training_curves(rows, out / "training_curves.png")
+    stages = [read_metrics(workdir) for workdir in [*args.earlier_stages, args.checkpoint]]
+    if stages[-1]:  # a training workdir: also its logged statistics over the run
+        rows, starts = chain_stages(stages)
+        plotting.plot_training_curves(rows, out / "training_curves.png", stage_starts=starts)
     print(f"median d_k {np.median(d):.2f} px over {d.size} pairs; score mean {scores.mean():.3f} "
           f"std {scores.std():.3f}; share of x within 0.4 px of a cell edge "
           f"{np.mean((rel_x < 0.05) | (rel_x > 0.95)):.3f}")

@@ -64,19 +64,40 @@ def test_speed_table_puts_the_papers_fps_beside_ours_per_batch():
     assert lines[4] == "| SIFT | - (47) | 20.0 (12) |"
 
 
-def test_stage2_continues_stage1_with_a_new_seed_and_a_schedule_that_is_nearly_spent_at_its_last_step():
+@pytest.mark.parametrize(("earlier", "later"), [("cpu_photos", "cpu_photos_stage2"), ("cpu_photos", "cpu_photos_stage3")])
+def test_a_later_stage_continues_the_first_with_a_new_seed_and_a_schedule_nearly_spent_at_its_last_step(earlier, later):
     from usp_jax import config as config_lib
     from usp_jax import train
 
-    stage1 = config_lib.load(str(EXPERIMENTS / "cpu_photos.py"))
-    stage2 = config_lib.load(str(EXPERIMENTS / "cpu_photos_stage2.py"))
-    # Same network, data and losses, so the stage-1 weights load and train on the same problem.
-    assert (stage2.model, stage2.data, stage2.loss) == (stage1.model, stage1.data, stage1.loss)
-    assert stage2.seed != stage1.seed
-    rate = train.learning_rate(stage2.optim)
-    peak = stage2.optim.learning_rate
+    first = config_lib.load(str(EXPERIMENTS / f"{earlier}.py"))
+    stage = config_lib.load(str(EXPERIMENTS / f"{later}.py"))
+    # Same network, data and losses, so the earlier weights load and train on the same problem.
+    assert (stage.model, stage.data, stage.loss) == (first.model, first.data, first.loss)
+    assert stage.seed != first.seed
+    rate = train.learning_rate(stage.optim)
+    peak = stage.optim.learning_rate
     assert float(rate(0)) == 0.0
-    assert float(rate(stage2.optim.warmup_steps)) == pytest.approx(peak)
+    assert float(rate(stage.optim.warmup_steps)) == pytest.approx(peak)
     # The run stops late on the cosine, where the last steps barely move the weights.
-    assert float(rate(stage2.num_steps - 1)) < 0.05 * peak
-    assert stage2.optim.warmup_steps + stage2.optim.decay_steps >= stage2.num_steps
+    assert float(rate(stage.num_steps - 1)) < 0.05 * peak
+    assert stage.optim.warmup_steps + stage.optim.decay_steps >= stage.num_steps
+
+
+def test_each_stage_has_its_own_seed_so_it_sees_other_crops_and_homographies():
+    from usp_jax import config as config_lib
+
+    names = ("cpu_photos", "cpu_photos_stage2", "cpu_photos_stage3")
+    seeds = [config_lib.load(str(EXPERIMENTS / f"{name}.py")).seed for name in names]
+    assert len(set(seeds)) == len(seeds)
+
+
+def test_chained_stages_share_one_step_axis_and_a_resumed_steps_later_row_wins():
+    figures = load("figures")
+    first = [{"step": 1, "loss": 9.0}, {"step": 2, "loss": 8.0}, {"step": 3, "loss": 7.0}]
+    # Killed after step 2's checkpoint at step 3, resumed: step 3 is logged again.
+    second = [{"step": 1, "loss": 6.0}, {"step": 2, "loss": 5.0}, {"step": 3, "loss": 4.5},
+              {"step": 2, "loss": 5.5}, {"step": 3, "loss": 4.0}]
+    rows, starts = figures.chain_stages([first, second])
+    assert [row["step"] for row in rows] == [1, 2, 3, 4, 5, 6]
+    assert [row["loss"] for row in rows] == [9.0, 8.0, 7.0, 6.0, 5.5, 4.0]
+    assert starts == [3]

@@ -95,5 +95,5 @@ def test_plot_training_curves_draws_logged_metrics_and_skips_missing_keys(tmp_pa
          "loss/desc": 80.0, "usp/mean_d": 2.6 - 0.01 * i, "desc/sim_negative": 0.3}
         for i in range(40)
     ]
-    path = plotting.plot_training_curves(rows, tmp_path / "curves.png", smooth=5)
+    path = plotting.plot_training_curves(rows, tmp_path / "curves.png", smooth=5, stage_starts=[200])
     assert png_shape(path) == (round(7.0 * plotting.DPI), round(11.0 * plotting.DPI), 3)

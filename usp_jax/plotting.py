@@ -9,6 +9,7 @@ no global backend and works on machines without a display. Every function writes
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
@@ -219,11 +220,16 @@ CURVE_PANELS = (
 
 
 def plot_training_curves(
-    rows: list[dict], path: str | Path, panels=CURVE_PANELS, smooth: int = 10
+    rows: list[dict],
+    path: str | Path,
+    panels=CURVE_PANELS,
+    smooth: int = 10,
+    stage_starts: Sequence[float] = (),
 ) -> Path:
     """Training statistics against step, one panel per group of metrics (``metrics.jsonl`` rows
     as written by ``train.fit``). Each curve is a running mean over ``smooth`` logged rows, so
-    the trend shows through batch noise; keys missing from the rows are skipped."""
+    the trend shows through batch noise; keys missing from the rows are skipped. A dashed line
+    marks each step in ``stage_starts`` (where a run continued by ``--init`` began)."""
     steps = np.array([row["step"] for row in rows], dtype=np.float64)
     figure = Figure(figsize=(11.0, 7.0), layout="constrained")
     for axes, (title, keys) in zip(figure.subplots(2, 2).ravel(), panels):
@@ -242,4 +248,6 @@ def plot_training_curves(
         axes.grid(alpha=0.3)
         if axes.lines:
             axes.legend(fontsize="small")
+        for start in stage_starts:  # after the legend, which lists metrics only
+            axes.axvline(start, color="0.5", linestyle="--", linewidth=0.8)
     return _save(figure, path)
