@@ -332,8 +332,15 @@ def test_malformed_homography_names_the_file(tmp_path):
 # --- end to end -------------------------------------------------------------------------------
 
 
+def test_num_points_counts_after_the_shared_view_filter_so_a_short_method_shows(tiny_hpatches):
+    cut_first = ev.evaluate([opencv_method("SIFT", 300)], tiny_hpatches, progress=False)
+    summary = ev.summarize(cut_first)["SIFT"]
+    assert summary["v"]["num_points"] < 300  # viewpoint pairs lose the points outside the view
+
+
 def test_evaluate_sift_on_tiny_set(tiny_hpatches):
-    results = ev.evaluate([opencv_method("SIFT", 300)], tiny_hpatches, progress=False)
+    # 4 x top-k candidates, as the CLI gives: the shared-view filter runs before the top-k.
+    results = ev.evaluate([opencv_method("SIFT", 1200)], tiny_hpatches, progress=False)
     assert len(results.rows) == 10
     summary = ev.summarize(results)["SIFT"]
     assert summary["all"]["pairs"] == 10 and summary["i"]["pairs"] == summary["v"]["pairs"] == 5

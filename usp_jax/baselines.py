@@ -35,8 +35,9 @@ def opencv_method(name: str, num_points: int) -> Method:
     strongest points (fewer only when the image has fewer), score = ``KeyPoint.response``.
 
     ``name`` is one of :func:`available_baselines` (case-insensitive). Descriptors are float32
-    for SIFT (L2) and uint8 packed bits for ORB, AKAZE and BRISK (Hamming). For NMS rows, give
-    ``num_points`` headroom over the evaluation's top-k: suppression runs after this cut.
+    for SIFT (L2) and uint8 packed bits for ORB, AKAZE and BRISK (Hamming). Give ``num_points``
+    headroom over the evaluation's top-k (the CLI gives 4x): NMS and the shared-view filter run
+    after this cut.
     """
     key = name.upper()
     if key not in _BASELINES:

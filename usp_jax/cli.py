@@ -57,9 +57,10 @@ def _methods(args, detector):
     from usp_jax.inference import as_method
 
     methods = [as_method(detector)] if detector is not None else []
-    # NMS is applied by the evaluation after each baseline's own top-N, so give baselines spare
-    # candidates when suppressing.
-    n = args.top * (4 if args.nms else 1)
+    # The evaluation applies NMS and the shared-view filter before its own top-k, to
+    # UnsuperPoint's full candidate set; a baseline cut at exactly top-k before them would be
+    # left with fewer points than the model on every viewpoint pair.
+    n = 4 * args.top
     for name in filter(None, (b.strip() for b in args.baselines.split(","))):
         methods.append(baselines.opencv_method(name, n))
     return methods
@@ -70,24 +71,25 @@ def cmd_evaluate(args) -> None:
 
     detector = None if args.baselines_only else _load_detector(args)
     height, width = args.res
+    methods = _methods(args, detector)
     results = evaluation.evaluate(
-        _methods(args, detector), args.hpatches, height=height, width=width, top_k=args.top,
-        nms=args.nms, progress=not args.no_progress,
+        methods, args.hpatches, height=height, width=width, top_k=args.top, nms=args.nms,
+        progress=not args.no_progress,
     )
     print(f"{args.hpatches} at {height}x{width}, top {args.top} points, NMS {args.nms}")
     print(evaluation.format_table(results))
     if args.json:
         pathlib.Path(args.json).write_text(json.dumps(evaluation.to_json(results), indent=1))
         print(f"wrote {args.json}")
-    if args.plots:
-        _plot_first_pair(detector, args.hpatches, args.plots, args.res, args.top)
+    if args.plots and methods:
+        _plot_first_pair(methods[0], args.hpatches, args.plots, args.res, args.top, args.nms)
 
 
-def _plot_first_pair(detector, root, out_dir, res, top):
-    """Keypoints and matches (paper Figures 7-8) on the last (hardest) pair of the first
-    viewpoint scene, or of the first scene when there is none."""
+def _plot_first_pair(method, root, out_dir, res, top, nms):
+    """Keypoints and matches (paper Figures 7-8) of ``method`` on the last (hardest) pair of the
+    first viewpoint scene, or of the first scene when there is none: the points and matches
+    its HA comes from (NMS, shared-view filter, top-k)."""
     from usp_jax import evaluation, plotting
-    from usp_jax.inference import as_method
 
     out_dir = pathlib.Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -95,9 +97,10 @@ def _plot_first_pair(detector, root, out_dir, res, top):
     first = next((f for f in files if f.split == "v"), files[0]).scene
     pair = evaluation.read_pair([f for f in files if f.scene == first][-1])
     im1, im2, h = evaluation.resize_pair(pair.image1, pair.image2, pair.homography, *res)
-    f1, f2 = (evaluation.top_k(detector.detect(im), top) for im in (im1, im2))
-    matching = evaluation.match_and_estimate(f1, f2, as_method(detector).norm)
-    stem = f"{pair.scene}_1_{pair.index}"
+    f1, f2 = (evaluation.detect(method, im, nms) for im in (im1, im2))
+    f1, f2 = evaluation.shared_top_k(f1, f2, h, im1.shape[:2], im2.shape[:2], top)
+    matching = evaluation.match_and_estimate(f1, f2, method.norm)
+    stem = f"{method.name}_{pair.scene}_1_{pair.index}"
     plotting.plot_keypoints(im1, f1.keypoints, im2, f2.keypoints, out_dir / f"{stem}_keypoints.png",
                             homography=h)
     plotting.plot_matches(im1, im2, f1.keypoints, f2.keypoints, matching.matches,
@@ -188,11 +191,12 @@ def cmd_demo(args) -> None:
                progress=True)
     print("[3/3] evaluating against ORB and SIFT", file=sys.stderr)
     ns = argparse.Namespace(top=300, nms=0, baselines="orb,sift")
-    results = evaluation.evaluate(_methods(ns, detector), out / "pairs", height=240, width=320,
-                                  top_k=300, nms=0, progress=True)
+    methods = _methods(ns, detector)
+    results = evaluation.evaluate(methods, out / "pairs", height=240, width=320, top_k=300, nms=0,
+                                  progress=True)
     print("\n240x320, top 300 points, pairs made from photos the shipped model never saw")
     print(evaluation.format_table(results))
-    _plot_first_pair(detector, out / "pairs", out, (240, 320), 300)
+    _plot_first_pair(methods[0], out / "pairs", out, (240, 320), 300, 0)
     print(f"demo finished in {time.perf_counter() - start:.0f} s; outputs in {out}")
 
 

@@ -531,7 +531,8 @@ class EvalConfig:
 
 class PairResult(NamedTuple):
     """Metrics of one method on one pair. ``corner_error`` is inf and ``le`` NaN when undefined;
-    ``num_points`` is the mean count over both images after NMS and top-k."""
+    ``num_points`` is the mean count over both images of the points RS, LE and HA use (after
+    NMS, the shared-view filter and top-k): below top-k, the method ran short of points."""
 
     scene: str
     split: str
@@ -575,18 +576,23 @@ def _checked(features: Features, method: Method, nms: float) -> Features:
     return _take(checked, nms_radius(keypoints, scores, nms)) if nms > 0 else checked
 
 
+def detect(method: Method, image: np.ndarray, nms: float = 0.0) -> Features:
+    """``method.detect(image)`` with its output validated and the protocol's radius NMS applied:
+    the points every metric starts from."""
+    return _checked(method.detect(image), method, nms)
+
+
 def evaluate_pair(method: Method, pair: Pair, config: EvalConfig) -> PairResult:
     """Run one method on one (already resized) pair and compute every metric."""
-    features1 = _checked(method.detect(pair.image1), method, config.nms)
-    features2 = _checked(method.detect(pair.image2), method, config.nms)
+    features1 = detect(method, pair.image1, config.nms)
+    features2 = detect(method, pair.image2, config.nms)
     shape1, shape2 = pair.image1.shape[:2], pair.image2.shape[:2]
     args = (features1, features2, pair.homography, shape1, shape2, config.top_k)
     rs, le = repeatability(*args)
     error = homography_accuracy(*args, norm=method.norm)
     ha1, ha3, ha5 = (float(error <= eps) for eps in HA_TOLERANCES)
-    num_points = (
-        min(len(features1.scores), config.top_k) + min(len(features2.scores), config.top_k)
-    ) / 2
+    kept1, kept2 = shared_top_k(*args)
+    num_points = (len(kept1.scores) + len(kept2.scores)) / 2
     return PairResult(
         scene=pair.scene,
         split=pair.split,
