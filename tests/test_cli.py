@@ -102,3 +102,20 @@ def test_export_writes_weights_and_an_artifact_that_load_without_the_model(workd
     expected = inference.Detector.from_checkpoint(workdir).detect(image, top_n=10)
     (exported,) = inference.load_exported(artifact)(image[None])
     np.testing.assert_allclose(exported.keypoints, expected.keypoints, atol=1e-3)
+
+
+@pytest.mark.parametrize(
+    "argv, message",
+    [
+        (["evaluate", "--hpatches", "x", "--top", "0"], "'0' is not a positive integer"),
+        (["evaluate", "--hpatches", "x", "--top", "-1"], "'-1' is not a positive integer"),
+        (["evaluate", "--hpatches", "x", "--res", "0x320"], "at least 8 px"),
+        (["make-pairs", "--images", "x", "--out", "y", "--views", "0"], "positive integer"),
+        (["benchmark", "--batch", "1", "0"], "positive integer"),
+    ],
+)
+def test_sizes_and_counts_below_one_are_rejected_by_the_parser(argv, message, capsys):
+    with pytest.raises(SystemExit) as exit_info:
+        main(argv)
+    assert exit_info.value.code == 2
+    assert message in capsys.readouterr().err.strip().splitlines()[-1]

@@ -127,3 +127,11 @@ def test_duplicate_scene_names_are_rejected_before_writing(photos, tmp_path):
     with pytest.raises(ValueError, match="astronaut"):
         make_pairs([photos / "astronaut.png", tmp_path / "astronaut.jpg"], tmp_path / "out")
     assert not (tmp_path / "out").exists()
+
+
+@pytest.mark.parametrize("views", [1, 7])
+def test_views_outside_the_hpatches_layout_are_rejected_before_writing(photos, tmp_path, views):
+    # The evaluation reads 1.ppm ... 6.ppm only: a 7th view would be written and never scored.
+    with pytest.raises(ValueError, match="2 to 6"):
+        make_pairs(photos, tmp_path / "out", num_views=views)
+    assert not (tmp_path / "out").exists()

@@ -180,6 +180,21 @@ def test_a_bad_init_file_or_data_path_stops_the_run_before_it_writes_the_workdir
     assert not (tmp_path / "run").exists()
 
 
+def test_init_weights_load_into_a_run_that_differs_only_in_settings_that_shape_no_weight(tmp_path):
+    from usp_jax import inference
+
+    weights = tmp_path / "start.npz"
+    source = train.create_state(tiny_config(seed=7))
+    inference.save_weights(
+        weights, {"params": source.params, "batch_stats": source.batch_stats}, SMALL_MODEL
+    )
+    changes = {"init_weights": str(weights), "model.dtype": "bfloat16",
+               "model.batch_norm_momentum": 0.99, "model.position_init_scale": 1.0}
+    state = train.create_state(tiny_config(**changes))
+    for got, want in zip(params_of(state), params_of(source)):
+        np.testing.assert_allclose(got, want, rtol=1e-3, atol=1e-4)
+
+
 def test_batch_not_divisible_by_devices_is_a_clear_error(tmp_path, monkeypatch):
     monkeypatch.setattr(jax, "device_count", lambda: 4)
     with pytest.raises(ValueError, match="not divisible by the 4 devices"):

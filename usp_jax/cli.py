@@ -22,7 +22,19 @@ def _resolution(text: str) -> tuple[int, int]:
         height, width = (int(v) for v in text.lower().split("x"))
     except ValueError:
         raise argparse.ArgumentTypeError(f"resolution {text!r} is not HxW, e.g. 240x320") from None
+    if min(height, width) < 8:  # one 8x8 cell at least
+        raise argparse.ArgumentTypeError(f"resolution {text!r} needs H and W of at least 8 px")
     return height, width
+
+
+def _positive(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        value = 0
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a positive integer")
+    return value
 
 
 def _load_detector(args):
@@ -222,7 +234,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--data", help="image folder, tfds:NAME[:SPLIT], or 'sample' (bundled photos)")
     p.add_argument("--workdir", required=True, help="checkpoints, config.json, metrics, TensorBoard")
     p.add_argument("--config", default="paper", help="preset (paper, cpu) or experiments/*.py file")
-    p.add_argument("--steps", type=int, help="train up to this step (overrides num_steps)")
+    p.add_argument("--steps", type=_positive, help="train up to this step (overrides num_steps)")
     p.add_argument("--init", help="start from these weights (.npz from `usp-jax export`)")
     p.add_argument("--distributed", action="store_true",
                    help="multi-host: call jax.distributed.initialize() first")
@@ -235,7 +247,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--checkpoint", help="training workdir or checkpoint (default: shipped weights)")
     p.add_argument("--hpatches", required=True, help="HPatches- or Oxford-layout folder")
     p.add_argument("--res", type=_resolution, default=(240, 320), help="HxW (default 240x320)")
-    p.add_argument("--top", type=int, default=300, help="points kept per image")
+    p.add_argument("--top", type=_positive, default=300, help="points kept per image")
     p.add_argument("--nms", type=int, default=0, choices=(0, 4), help="NMS radius in px")
     p.add_argument("--baselines", default="orb,sift,akaze,brisk")
     p.add_argument("--baselines-only", action="store_true", help="skip the learned model")
@@ -248,7 +260,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--images", required=True)
     p.add_argument("--out", required=True)
     p.add_argument("--size", type=_resolution, default=(480, 640), help="HxW of generated images")
-    p.add_argument("--views", type=int, default=6)
+    p.add_argument("--views", type=_positive, default=6)
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--no-progress", action="store_true")
     p.set_defaults(func=cmd_make_pairs)
@@ -256,9 +268,9 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("benchmark", help="frames per second, model and OpenCV side by side")
     p.add_argument("--checkpoint")
     p.add_argument("--res", type=_resolution, nargs="+", default=[(240, 320), (480, 640)])
-    p.add_argument("--batch", type=int, nargs="+", default=[1, 10])
-    p.add_argument("--top", type=int, help="points kept (default: 300 up to 240x320, else 1000)")
-    p.add_argument("--repeats", type=int, default=10)
+    p.add_argument("--batch", type=_positive, nargs="+", default=[1, 10])
+    p.add_argument("--top", type=_positive, help="points kept (default: 300 up to 240x320, else 1000)")
+    p.add_argument("--repeats", type=_positive, default=10)
     p.add_argument("--no-opencv", action="store_true")
     p.add_argument("--json")
     p.set_defaults(func=cmd_benchmark)
@@ -266,7 +278,7 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("detect", help="keypoints of one image")
     p.add_argument("image")
     p.add_argument("--checkpoint")
-    p.add_argument("--top", type=int, default=500)
+    p.add_argument("--top", type=_positive, default=500)
     p.add_argument("--out", help="PNG with the keypoints drawn")
     p.add_argument("--json", help="keypoints, scores and descriptors as JSON")
     p.set_defaults(func=cmd_detect)
@@ -276,7 +288,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--weights", help="write a float16 .npz (what Detector.pretrained() loads)")
     p.add_argument("--artifact", help="write a serialised jax.export detector")
     p.add_argument("--res", type=_resolution, default=(240, 320), help="artifact input HxW")
-    p.add_argument("--top", type=int, default=1000, help="artifact keeps this many points")
+    p.add_argument("--top", type=_positive, default=1000, help="artifact keeps this many points")
     p.add_argument("--nms", type=int, default=0, help="artifact NMS radius in px")
     p.set_defaults(func=cmd_export)
 

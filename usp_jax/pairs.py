@@ -122,7 +122,7 @@ def make_pairs(images: str | Path | Iterable[str | Path], out_dir: str | Path, *
       seed: the output is a deterministic function of seed, the photos and their order.
       size: (H, W) of every generated image. Photos are resized to cover (H, W) / patch_ratio first
         (enlarged when smaller, so every view is a crop at roughly the photo's own scale).
-      num_views: images per scene (HPatches has 6).
+      num_views: images per scene, 2 to 6 (HPatches has 6).
       kinds: which scene kinds to write, a subset of ("v", "i").
       progress: show a tqdm progress bar over the photos.
     Returns:
@@ -135,8 +135,8 @@ def make_pairs(images: str | Path | Iterable[str | Path], out_dir: str | Path, *
     height, width = size
     if height < 2 or width < 2:
         raise ValueError(f"size must be at least (2, 2), got {size}")
-    if num_views < 2:
-        raise ValueError(f"num_views must be at least 2, got {num_views}")
+    if not 2 <= num_views <= 6:  # the HPatches layout names images 1.ppm ... 6.ppm
+        raise ValueError(f"num_views must be 2 to 6 (HPatches layout), got {num_views}")
     if not kinds or set(kinds) - {"v", "i"}:
         raise ValueError(f"kinds must be a non-empty subset of ('v', 'i'), got {tuple(kinds)}")
     sources = _list_sources(images)

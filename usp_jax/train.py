@@ -67,12 +67,16 @@ def create_state(config: config_lib.Config) -> TrainState:
     if config.init_weights:
         from usp_jax import inference  # inference imports the evaluation stack; train need not
 
-        model_config, variables = inference.load_weights(config.init_weights)
-        if model_config != config.model:
+        model_config, loaded = inference.load_weights(config.init_weights)
+        # Compare weight shapes, not configs: dtype, BatchNorm momentum or the heads' init scale
+        # may differ between the exporting and the continuing run (export on a CPU writes
+        # float32, a TPU run computes in bfloat16) without changing a single weight.
+        if jax.tree.map(jnp.shape, loaded) != jax.tree.map(jnp.shape, variables):
             raise ValueError(
-                f"{config.init_weights} holds a {model_config} network, the run configures "
-                f"{config.model}"
+                f"{config.init_weights} holds a {model_config} network, whose weights do not fit "
+                f"the run's {config.model}"
             )
+        variables = loaded
     optimizer = make_optimizer(config.optim)
     return TrainState(
         step=jnp.zeros((), jnp.int32),
