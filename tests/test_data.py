@@ -265,3 +265,20 @@ def test_unknown_tfds_name_or_split_is_a_one_line_error_naming_it(tfds_dir):
     with pytest.raises(ValueError, match="coco/2017:test") as error:
         data.open_source("tfds:coco/2017:test", tfds_data_dir=tfds_dir)
     assert "\n" not in str(error.value)
+
+
+def test_decode_applies_the_exif_orientation_like_cv2_imread():
+    import io
+
+    import PIL.Image
+
+    stored = np.zeros((20, 40, 3), np.uint8)
+    stored[:, :20] = (255, 0, 0)  # red left half as stored
+    image = PIL.Image.fromarray(stored)
+    exif = image.getexif()
+    exif[0x0112] = 6  # Orientation: the viewer turns it 90 degrees clockwise
+    encoded = io.BytesIO()
+    image.save(encoded, "JPEG", exif=exif, quality=95)
+    decoded = data.decode_image(encoded.getvalue())
+    assert decoded.shape == (40, 20, 3)  # upright as displayed: the red half is now on top
+    assert decoded[:18].mean(axis=(0, 1))[0] > 240 and decoded[22:].max() < 16

@@ -109,15 +109,17 @@ class DataConfig:
 
 
 def decode_image(data: bytes, name: str = "image") -> np.ndarray:
-    """Encoded image bytes -> uint8 [H, W, 3] RGB.
+    """Encoded image bytes -> uint8 [H, W, 3] RGB, as ``cv2.imread`` would show the file.
 
     Grayscale is replicated to three channels, alpha is dropped, 16-bit is scaled to 8-bit
-    (65535 -> 255) and OpenCV's BGR order is turned into RGB. EXIF orientation is not applied
-    (random crops and homographies make it irrelevant for training). Raises ValueError naming
-    ``name`` when OpenCV cannot decode the bytes.
+    (65535 -> 255), OpenCV's BGR order is turned into RGB, and the EXIF orientation is applied
+    (like ``cv2.imread``), so a phone photo's keypoints land where a viewer shows its pixels.
+    Raises ValueError naming ``name`` when OpenCV cannot decode the bytes.
     """
     try:
-        image = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
+        image = cv2.imdecode(
+            np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR | cv2.IMREAD_ANYDEPTH
+        )
     except cv2.error:
         image = None  # OpenCV raises on some inputs (e.g. empty) and returns None on others.
     if image is None:
@@ -126,11 +128,7 @@ def decode_image(data: bytes, name: str = "image") -> np.ndarray:
         image = cv2.convertScaleAbs(image, alpha=255 / 65535)
     elif image.dtype != np.uint8:
         raise ValueError(f"{name}: unsupported pixel type {image.dtype}")
-    channels = 1 if image.ndim == 2 else image.shape[2]
-    conversion = {1: cv2.COLOR_GRAY2RGB, 3: cv2.COLOR_BGR2RGB, 4: cv2.COLOR_BGRA2RGB}
-    if channels not in conversion:
-        raise ValueError(f"{name}: unsupported channel count {channels}")
-    return cv2.cvtColor(image, conversion[channels])
+    return cv2.cvtColor(image, cv2.COLOR_BGR2RGB)
 
 
 def read_image(path: str | pathlib.Path) -> np.ndarray:

@@ -41,7 +41,6 @@ RANSAC_MAX_ITERS = 5000
 #: Images smaller than this on a side cannot hold a meaningful pair.
 MIN_IMAGE_SIDE = 8
 
-IMAGE_SUFFIXES = (".ppm", ".pgm", ".png", ".jpg", ".jpeg")
 _HPATCHES_IMAGE = re.compile(r"^([1-6])$")
 _OXFORD_IMAGE = re.compile(r"^img([1-6])$")
 # Section order of the tables: every pair, then HPatches' illumination and viewpoint splits.
@@ -126,7 +125,7 @@ def _scene_images(folder: Path) -> tuple[dict[int, Path], str] | None:
         images = {}
         for path in sorted(folder.iterdir()):
             match = pattern.match(path.stem)
-            if match and path.suffix.lower() in IMAGE_SUFFIXES and path.is_file():
+            if match and path.suffix.lower() in data.IMAGE_SUFFIXES and path.is_file():
                 images.setdefault(int(match.group(1)), path)
         if 1 in images:
             return images, layout

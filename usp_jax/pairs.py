@@ -26,9 +26,8 @@ import jax
 import numpy as np
 from tqdm import tqdm
 
+from usp_jax.data import IMAGE_SUFFIXES, read_image
 from usp_jax.geometry import HomographyConfig, sample_homography
-
-IMAGE_SUFFIXES = frozenset({".jpg", ".jpeg", ".png", ".ppm", ".pgm", ".bmp", ".tif", ".tiff", ".webp"})
 
 # Image 1 of every scene: an upright, undistorted crop, like the frontal reference shots of HPatches.
 REFERENCE_VIEW = HomographyConfig(patch_ratio=0.75, scaling=0.0, max_angle=0.0, perspective=0.0)
@@ -151,11 +150,11 @@ def make_pairs(images: str | Path | Iterable[str | Path], out_dir: str | Path, *
     configs = [REFERENCE_VIEW] + [_view_config(strength) for strength in strengths]
     scenes: list[Path] = []
     for index, path in enumerate(tqdm(sources, desc="make-pairs", unit="photo", disable=not progress)):
-        bgr = cv2.imread(str(path), cv2.IMREAD_COLOR)
-        if bgr is None:
+        try:
+            photo = _fit_to_cover(read_image(path), source_height, source_width)
+        except ValueError:
             warnings.warn(f"skipping unreadable image {path}", stacklevel=2)
             continue
-        photo = _fit_to_cover(cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB), source_height, source_width)
         key = jax.random.fold_in(jax.random.PRNGKey(seed), index)
         # Called eagerly on purpose: under jit every strength would be a separate compilation, while op-by-op
         # dispatch compiles each primitive once and then takes milliseconds per view.
