@@ -119,3 +119,12 @@ def test_sizes_and_counts_below_one_are_rejected_by_the_parser(argv, message, ca
         main(argv)
     assert exit_info.value.code == 2
     assert message in capsys.readouterr().err.strip().splitlines()[-1]
+
+
+def test_demo_runs_offline_on_the_shipped_weights_and_writes_its_pngs(tmp_path, capsys):
+    assert main(["demo", "--out", str(tmp_path)]) == 0
+    out = capsys.readouterr().out
+    assert "the weights shipped with usp-jax" in out and "never saw" in out
+    assert all(name in out for name in ("UnsuperPoint", "ORB", "SIFT"))
+    assert len(list(tmp_path.glob("UnsuperPoint_v_*_keypoints.png"))) == 1
+    assert len(list(tmp_path.glob("UnsuperPoint_v_*_matches.png"))) == 1

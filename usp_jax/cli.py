@@ -195,8 +195,10 @@ def cmd_demo(args) -> None:
     try:
         detector = Detector.pretrained()
         print("model: the weights shipped with usp-jax")
+        about = "photos the shipped model never saw"
     except FileNotFoundError:
         detector = _demo_training(out / "train")
+        about = "photos the short training saw too (no shipped weights)"
     photos_dir = pathlib.Path(skimage.data.__file__).parent
     print("[2/3] building HPatches-layout pairs from the bundled photos", file=sys.stderr)
     make_pairs([photos_dir / name for name in DEMO_PHOTOS], out / "pairs", seed=0, size=(480, 640),
@@ -206,7 +208,7 @@ def cmd_demo(args) -> None:
     methods = _methods(ns, detector)
     results = evaluation.evaluate(methods, out / "pairs", height=240, width=320, top_k=300, nms=0,
                                   progress=True)
-    print("\n240x320, top 300 points, pairs made from photos the shipped model never saw")
+    print(f"\n240x320, top 300 points, pairs made from {about}")
     print(evaluation.format_table(results))
     _plot_first_pair(methods[0], out / "pairs", out, (240, 320), 300, 0)
     print(f"demo finished in {time.perf_counter() - start:.0f} s; outputs in {out}")
