@@ -1,6 +1,6 @@
-"""Stage 1 of the shipped weights (stage 2: ``cpu_photos_stage2.py``): the paper's network, losses
-and batch on the offline photo corpus, at 128x160 crops so a 2-core CPU gets through four times
-as many steps.
+"""Stage 1 of the shipped weights (continued by ``cpu_photos_stage2.py``, then
+``cpu_photos_stage3.py``): the paper's network, losses and batch on the offline photo corpus, at
+128x160 crops so a 2-core CPU gets through four times as many steps.
 
 Build the corpus first (``experiments/build_corpus.py``), then::
 

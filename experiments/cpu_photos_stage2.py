@@ -1,5 +1,6 @@
 """Second stage of the shipped weights: ``experiments/cpu_photos.py`` continued from its 10,000-step
 weights with a fresh optimiser, a new seed (other crops and homographies) and a second cosine.
+Stage 3 (``cpu_photos_stage3.py``) continues from these weights.
 
 The first stage's cosine has brought the rate to 0, while the point-pair distance d_k was still
 falling (2.56 px at chance until ~2,000 steps, 1.87 px at 10,000): a warm restart at half the first
