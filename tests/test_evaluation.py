@@ -142,7 +142,7 @@ def test_fewer_than_four_matches_is_a_failed_homography():
 def test_match_and_estimate_recovers_a_homography_from_clean_matches():
     truth = np.array([[0.9, 0.1, 3.0], [-0.05, 1.1, -2.0], [1e-4, 2e-4, 1.0]])
     points = grid()
-    matching = ev.match_and_estimate(features(points), features(ev.warp_points(points, truth)))
+    matching = ev.match_and_estimate(features(points), features(ev.project_points(points, truth)))
     assert matching.inliers.all() and (matching.matches[:, 0] == matching.matches[:, 1]).all()
     assert ev.corner_error(truth, matching.homography, SHAPE) < 1e-3
 
@@ -153,12 +153,12 @@ def test_binary_descriptors_match_with_hamming():
     assert ev.matching_score(f, f, EYE, SHAPE, SHAPE, k=300, norm=cv2.NORM_HAMMING) == 1.0
 
 
-def test_warp_points_matches_cv2():
+def test_project_points_matches_cv2():
     homography = np.array([[0.9, 0.1, 3.0], [-0.05, 1.1, -2.0], [1e-3, 2e-4, 1.0]])
     points = np.random.default_rng(0).uniform(0, 64, size=(20, 2))
     expected = cv2.perspectiveTransform(points[None], homography)[0]
-    np.testing.assert_allclose(ev.warp_points(points, homography), expected, rtol=1e-10)
-    assert ev.warp_points(np.zeros((0, 2)), homography).shape == (0, 2)
+    np.testing.assert_allclose(ev.project_points(points, homography), expected, rtol=1e-10)
+    assert ev.project_points(np.zeros((0, 2)), homography).shape == (0, 2)
 
 
 def test_nms_radius_keeps_the_higher_score_greedily():
@@ -180,8 +180,8 @@ def test_resize_pair_adapts_homography_per_image():
     assert small1.shape == small2.shape == (240, 320, 3)
     points = rng.uniform(0, 300, size=(10, 2))
     # Resize to original image-1 coordinates, warp with H, resize to image-2's new size.
-    expected = ev.warp_points(points / [320 / 400, 240 / 300], homography) * [320 / 420, 240 / 330]
-    np.testing.assert_allclose(ev.warp_points(points, adapted), expected, rtol=1e-10)
+    expected = ev.project_points(points / [320 / 400, 240 / 300], homography) * [320 / 420, 240 / 330]
+    np.testing.assert_allclose(ev.project_points(points, adapted), expected, rtol=1e-10)
 
 
 def test_modules_do_not_import_jax():
@@ -370,7 +370,7 @@ def gt_method(root: Path, height: int, width: int) -> ev.Method:
         (h1, w1), (hk, wk) = pair.image1.shape[:2], pair.image2.shape[:2]
         for image, image_points, (h, w) in (
             (pair.image1, points, (h1, w1)),
-            (pair.image2, ev.warp_points(points, pair.homography), (hk, wk)),
+            (pair.image2, ev.project_points(points, pair.homography), (hk, wk)),
         ):
             small = cv2.resize(image, (width, height))
             key = hashlib.sha1(small.tobytes()).hexdigest()

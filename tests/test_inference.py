@@ -283,5 +283,5 @@ def test_to_cv2_points_match_and_give_a_homography(detector, photo):
     assert correct.sum() >= 50 and correct.mean() > 0.5
     homography, _ = cv2.findHomography(p1, p2, cv2.RANSAC, 1.0)
     corners = np.array([[0, 0], [0, height - 1], [width - 1, 0], [width - 1, height - 1]])
-    error = evaluation.warp_points(corners, homography) - evaluation.warp_points(corners, shift)
+    error = evaluation.project_points(corners, homography) - evaluation.project_points(corners, shift)
     assert np.linalg.norm(error, axis=1).mean() < 2

@@ -5,7 +5,7 @@ import numpy as np
 import skimage.data
 
 from usp_jax import plotting
-from usp_jax.evaluation import Features, match_and_estimate, warp_points
+from usp_jax.evaluation import Features, match_and_estimate, project_points
 
 HOMOGRAPHY = np.array([[1.0, 0.05, 3.0], [-0.02, 1.0, 2.0], [0.0, 0.0, 1.0]])
 
@@ -24,7 +24,7 @@ def test_plot_keypoints_writes_a_two_panel_png(tmp_path):
     image1, image2 = images()
     points = np.random.default_rng(0).uniform(0, 40, size=(30, 2))
     path = plotting.plot_keypoints(
-        image1, points, image2, warp_points(points, HOMOGRAPHY), tmp_path / "kp.png", HOMOGRAPHY
+        image1, points, image2, project_points(points, HOMOGRAPHY), tmp_path / "kp.png", HOMOGRAPHY
     )
     height, width, _ = png_shape(path)
     assert width == 2 * plotting.PANEL_INCHES * plotting.DPI and height > 0
@@ -57,7 +57,7 @@ def test_plot_matches_draws_estimated_and_failed_homographies(tmp_path):
     descriptors = np.eye(20, dtype=np.float32)
     f1 = Features(points, np.ones(20, np.float32), descriptors)
     f2 = Features(
-        warp_points(points, HOMOGRAPHY).astype(np.float32), np.ones(20, np.float32), descriptors
+        project_points(points, HOMOGRAPHY).astype(np.float32), np.ones(20, np.float32), descriptors
     )
     matching = match_and_estimate(f1, f2)
     for name, estimate in (("est.png", matching.homography), ("none.png", None)):

@@ -267,9 +267,11 @@ def resize_pair(
 # Point selection
 
 
-def warp_points(points: np.ndarray, homography: np.ndarray) -> np.ndarray:
-    """Apply a homography to ``[N, 2]`` (x, y) points (same as ``cv2.perspectiveTransform``, but
-    float64 and defined for N = 0). Points sent to infinity come back non-finite."""
+def project_points(points: np.ndarray, homography: np.ndarray) -> np.ndarray:
+    """Apply a homography to ``[N, 2]`` (x, y) points: ``cv2.perspectiveTransform``'s argument
+    order and, for finite points, its result, but float64 and defined for N = 0. Points sent to
+    infinity come back non-finite, so the protocol's visibility tests reject them (OpenCV and
+    ``geometry.warp_points(H, xy)``, the JAX version used in training, return (0, 0))."""
     points = np.asarray(points, dtype=np.float64).reshape(-1, 2)
     projected = (
         np.concatenate([points, np.ones((len(points), 1))], axis=1) @ np.asarray(homography).T
@@ -284,7 +286,7 @@ def shared_view_mask(
     """Shared-view filter: bool ``[N]``, True where ``homography`` sends the point inside an
     image of ``shape`` (height, width), i.e. ``0 <= x < W`` and ``0 <= y < H`` as in KP2D's
     ``keep_true_keypoints``. Used with H for image-1 points and inv(H) for image-2 points."""
-    warped = warp_points(keypoints, homography)
+    warped = project_points(keypoints, homography)
     height, width = shape
     return (
         (warped[:, 0] >= 0) & (warped[:, 0] < width) & (warped[:, 1] >= 0) & (warped[:, 1] < height)
@@ -369,7 +371,7 @@ def repeatability(
     n1, n2 = len(kept1.keypoints), len(kept2.keypoints)
     if n1 == 0 or n2 == 0:
         return 0.0, math.nan
-    warped1 = warp_points(kept1.keypoints, homography)
+    warped1 = project_points(kept1.keypoints, homography)
     distances = np.linalg.norm(
         warped1[:, None, :] - np.asarray(kept2.keypoints, np.float64)[None], axis=2
     )
@@ -434,7 +436,7 @@ def corner_error(
         return math.inf
     corners = image_corners(shape1)
     distance = np.linalg.norm(
-        warp_points(corners, true_homography) - warp_points(corners, estimate), axis=1
+        project_points(corners, true_homography) - project_points(corners, estimate), axis=1
     )
     error = float(distance.mean())
     return error if math.isfinite(error) else math.inf
@@ -468,7 +470,7 @@ def _directional_matching_score(
     matches = _match(query.descriptors, train.descriptors, norm, cross_check=False)
     if len(matches) == 0:
         return 0.0
-    projected = warp_points(np.asarray(train.keypoints)[matches[:, 1]], train_to_query)
+    projected = project_points(np.asarray(train.keypoints)[matches[:, 1]], train_to_query)
     height, width = shape
     visible = (
         (projected[:, 0] >= 0)

@@ -17,7 +17,7 @@ from matplotlib.collections import LineCollection
 from matplotlib.figure import Figure
 from matplotlib.lines import Line2D
 
-from usp_jax.evaluation import corner_error, image_corners, shared_view_mask, warp_points
+from usp_jax.evaluation import corner_error, image_corners, shared_view_mask, project_points
 
 DPI = 120
 # Colours of the paper's figures: image-1 evidence green, image-2 / estimated evidence blue.
@@ -52,7 +52,7 @@ def _keep_view(axes, shape: tuple[int, ...]) -> None:
 def _border(homography: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
     """Image border (corners in drawing order, closed) warped by ``homography``, [5, 2]."""
     corners = image_corners(shape)[[0, 2, 3, 1, 0]]
-    return warp_points(corners, homography)
+    return project_points(corners, homography)
 
 
 def plot_keypoints(
@@ -83,7 +83,7 @@ def plot_keypoints(
     handles = [Line2D([], [], linestyle="", marker="x", color=GREEN, label="reference points")]
     if homography is not None:
         inside = shared_view_mask(keypoints1, homography, image2.shape[:2])
-        right.scatter(*warp_points(np.asarray(keypoints1)[inside], homography).T, **cross)
+        right.scatter(*project_points(np.asarray(keypoints1)[inside], homography).T, **cross)
         handles[0].set_label("reference points (warped by H)")
     right.scatter(
         *np.asarray(keypoints2).T,
