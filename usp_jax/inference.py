@@ -279,8 +279,7 @@ class Detector:
         nms_radius: float = 0,
         border: float = 0,
     ):
-        if top_n is not None and top_n < 1:
-            raise ValueError(f"top_n must be positive or None, got {top_n}")
+        _check_top_n(top_n)
         if nms_radius < 0 or border < 0:
             raise ValueError(
                 f"nms_radius and border must be >= 0, got nms_radius={nms_radius}, border={border}"
@@ -368,8 +367,14 @@ class Detector:
         return self._call(_pad(stack), sizes, top_n)
 
     def _call(self, padded: np.ndarray, sizes: np.ndarray, top_n: int | None) -> list[Features]:
-        top_n = self.top_n if top_n is None else top_n
+        top_n = self.top_n if top_n is None else _check_top_n(top_n)
         return _unbatch(self._forward(self.variables, padded, sizes, top_n=top_n))
+
+
+def _check_top_n(top_n: int | None) -> int | None:
+    if top_n is not None and top_n < 1:
+        raise ValueError(f"top_n must be positive or None, got {top_n}")
+    return top_n
 
 
 def as_method(detector: Detector, name: str = "UnsuperPoint") -> Method:
