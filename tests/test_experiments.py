@@ -1,8 +1,10 @@
 """The experiment scripts' own arithmetic: Table 1's configurations and relative changes."""
 
 import importlib.util
+import json
 import pathlib
 
+import numpy as np
 import pytest
 
 EXPERIMENTS = pathlib.Path(__file__).parents[1] / "experiments"
@@ -41,6 +43,66 @@ def test_table1_changes_are_percent_of_c0_with_lower_le_counted_as_better():
     assert changes["C1"]["rs"] == pytest.approx(10.0)
     assert changes["C1"]["le"] == pytest.approx(25.0)
     assert changes["C1"]["ms"] == pytest.approx(-20.0)
+
+
+def _rows(config, values):
+    """Evaluation rows (``evaluation.to_json``'s "pairs") of one configuration, one per value."""
+    metrics = ("rs", "le", "ha1", "ha3", "ha5", "ms")
+    return [{"method": config, **dict.fromkeys(metrics, v)} for v in values]
+
+
+def test_table1_bootstrap_is_paired_so_a_change_on_every_pair_has_a_tight_interval():
+    table1 = load("table1")
+    rng = np.random.default_rng(0)
+    base = rng.uniform(0.2, 1.0, size=50)
+    pairs = table1.per_pair(_rows("C0", base) + _rows("C1", 1.1 * base))
+    intervals = table1.bootstrap_intervals(pairs, rounds=200)
+    # Every resample sees C1 = 1.1 x C0: +10% (LE, lower is better, -10%) with no spread. Drawing
+    # the two configurations' pairs independently would spread it by tens of percent.
+    assert intervals["C1"]["rs"] == pytest.approx((10.0, 10.0))
+    assert intervals["C1"]["le"] == pytest.approx((-10.0, -10.0))
+    assert intervals["C0"]["ms"] == pytest.approx((0.0, 0.0))
+
+
+def test_table1_bootstrap_interval_widens_with_pair_to_pair_noise_and_skips_undefined_le():
+    table1 = load("table1")
+    rng = np.random.default_rng(1)
+    base = rng.uniform(0.2, 1.0, size=80)
+    noisy = base * rng.uniform(0.8, 1.3, size=80)
+    rows = _rows("C0", base) + _rows("C1", noisy)
+    rows[0]["le"] = None
+    intervals = table1.bootstrap_intervals(table1.per_pair(rows), rounds=500)
+    low, high = intervals["C1"]["rs"]
+    point = 100.0 * (noisy.mean() - base.mean()) / base.mean()
+    assert low < point < high and high - low > 2.0
+    assert np.isfinite(intervals["C1"]["le"]).all()
+
+
+def test_table1_markdown_puts_the_papers_numbers_beside_ours():
+    table1 = load("table1")
+    values = {"rs": 0.5, "le": 2.0, "ha1": 0.2, "ha3": 0.4, "ha5": 0.5, "ms": 0.25}
+    summary = {name: values for name in table1.CONFIGS}
+    changes = table1.relative_changes(summary)
+    intervals = {name: dict.fromkeys(values, (-1.0, 2.0)) for name in table1.CONFIGS}
+    lines = table1.markdown(summary, changes, intervals, steps=10, pairs=3).splitlines()
+    assert lines[2].startswith("| C0 base |  |  |  | 0.500 (0.633) | 2.000 (0.898) |")
+    assert "| +0.0% (+15.3%)<br>[-1.0, +2.0] |" in lines[4]  # C2, HA e=1
+    assert lines[-3].startswith("| C4 UnsuperPoint | x | x | x | 0.500 (0.612) |")
+
+
+def test_table1_report_renders_again_from_its_own_json():
+    table1 = load("table1")
+    values = {"rs": 0.5, "le": 2.0, "ha1": 0.0, "ha3": 1.0, "ha5": 1.0, "ms": 0.25}
+    evaluated = {
+        "summary": {name: {"all": {**values, "pairs": 2}} for name in table1.CONFIGS},
+        "pairs": [row for name in table1.CONFIGS for row in _rows(name, [0.5, 0.5])],
+    }
+    written, table = table1.report(evaluated, steps=7)
+    assert json.loads(json.dumps(written))["evaluation"] == evaluated
+    assert table == table1.report(written["evaluation"], written["steps"])[1]
+    assert "7 steps each from scratch, seed 0; 2 held-out pairs" in table
+    # C0 scored HA e=1 on no pair: its change is undefined, not a division error.
+    assert "| n/a (+0.0%) |" in table
 
 
 def test_paper_tables_put_the_papers_value_beside_ours():
