@@ -18,14 +18,13 @@ About a minute on 2 CPU cores.
 from __future__ import annotations
 
 import argparse
-import json
 import pathlib
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-from usp_jax import checkpoint, data, geometry, losses, plotting
+from usp_jax import checkpoint, data, geometry, losses, plotting, train
 from usp_jax.model import UnsuperPoint
 
 
@@ -55,13 +54,6 @@ def pair_statistics(checkpoint_dir, photos, height=240, width=320, seed=0):
             scores.append(s.ravel())
             rel_x.append(x.ravel())
     return np.concatenate(d), np.concatenate(scores), np.concatenate(rel_x)
-
-
-def read_metrics(workdir) -> list[dict]:
-    path = pathlib.Path(workdir) / "metrics.jsonl"
-    if not path.is_file():
-        return []
-    return [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
 
 
 def chain_stages(stages: list[list[dict]]) -> tuple[list[dict], list[int]]:
@@ -103,7 +95,7 @@ def main() -> None:
     plotting.plot_histograms(series, out / "fig5_x_in_cell.png", bins=np.linspace(0, 8, 33),
                              xlabel="x inside the 8 px cell", density=True,
                              title="x-coordinate predictions (paper Fig. 5)")
-    stages = [read_metrics(workdir) for workdir in [*args.earlier_stages, args.checkpoint]]
+    stages = [train.read_metrics(workdir) for workdir in [*args.earlier_stages, args.checkpoint]]
     if stages[-1]:  # a training workdir: also its logged statistics over the run
         rows, starts = chain_stages(stages)
         plotting.plot_training_curves(rows, out / "training_curves.png", stage_starts=starts)

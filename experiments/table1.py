@@ -46,6 +46,14 @@ CONFIGS = {
     "C4": {"interpolate": True, "uniform": True, "decorrelation": True},
 }
 METRICS = evaluation.METRICS
+# Logged training statistics that show what each module does (means over a run's last steps).
+TRAINING_STATS = {
+    "usp/mean_d": "d_k (px)",
+    "usp/K": "K pairs",
+    "pred/relative_at_edge": "positions in outer 5% of cell",
+    "desc/sim_positive": "sim. positive",
+    "desc/sim_negative": "sim. negative",
+}
 # The paper's Table 1 (HPatches, 240x320, 300 points): C0 and C4 as values, C1-C4 in percent of C0.
 PAPER = {
     "C0": {"rs": 0.633, "le": 0.898, "ha1": 0.519, "ha3": 0.812, "ha5": 0.871, "ms": 0.458},
@@ -155,16 +163,37 @@ def markdown(summary: dict, changes: dict, intervals: dict, steps: int, pairs: i
     return "\n".join(lines)
 
 
-def report(evaluated: dict, steps: int) -> tuple[dict, str]:
-    """The JSON summary and the markdown table of an evaluation (``evaluation.to_json``)."""
+def training_stats(rows: list[dict], last: int = 200) -> dict[str, float]:
+    """Means of :data:`TRAINING_STATS` over the logged rows of a run's last ``last`` steps."""
+    final = max(row["step"] for row in rows)
+    tail = [row for row in rows if row["step"] > final - last]
+    return {key: float(np.mean([row[key] for row in tail])) for key in TRAINING_STATS}
+
+
+def training_markdown(stats: dict[str, dict[str, float]], last: int = 200) -> str:
+    lines = [
+        "| config | " + " | ".join(TRAINING_STATS.values()) + " |",
+        "|---|" + "---|" * len(TRAINING_STATS),
+    ]
+    for name, values in stats.items():
+        lines.append(f"| {name} | " + " | ".join(f"{values[k]:.3g}" for k in TRAINING_STATS) + " |")
+    lines += ["", f"Logged in training (128x160 crops), means over each run's last {last} steps."]
+    return "\n".join(lines)
+
+
+def report(evaluated: dict, steps: int, training: dict | None = None) -> tuple[dict, str]:
+    """The JSON summary and the markdown tables of an evaluation (``evaluation.to_json``) and,
+    given, each configuration's :func:`training_stats`."""
     summary = {name: evaluated["summary"][name]["all"] for name in CONFIGS}
     changes = relative_changes(summary)
     intervals = bootstrap_intervals(per_pair(evaluated["pairs"]))
     pairs = summary["C0"]["pairs"]
     table = markdown(summary, changes, intervals, steps, pairs)
+    if training:
+        table += "\n\n" + training_markdown(training)
     summary_json = {
         "steps": steps, "summary": summary, "relative": changes, "intervals": intervals,
-        "paper": PAPER, "evaluation": evaluated,
+        "paper": PAPER, "training": training, "evaluation": evaluated,
     }
     return summary_json, table
 
@@ -181,7 +210,7 @@ def main() -> None:
     args = parser.parse_args()
     if args.table:
         written = json.loads(pathlib.Path(args.table).read_text())
-        print(report(written["evaluation"], written["steps"])[1])
+        print(report(written["evaluation"], written["steps"], written.get("training"))[1])
         return
     if not (args.data and args.pairs and args.workdir):
         parser.error("--data, --pairs and --workdir are required unless --table is given")
@@ -195,7 +224,8 @@ def main() -> None:
 
     methods = [as_method(Detector.from_checkpoint(workdir / name), name) for name in CONFIGS]
     results = evaluation.evaluate(methods, args.pairs, height=240, width=320, top_k=300)
-    summary_json, table = report(evaluation.to_json(results), args.steps)
+    training = {name: training_stats(train.read_metrics(workdir / name)) for name in CONFIGS}
+    summary_json, table = report(evaluation.to_json(results), args.steps, training)
     print(table)
     if args.out:
         out = pathlib.Path(args.out)

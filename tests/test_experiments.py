@@ -97,12 +97,23 @@ def test_table1_report_renders_again_from_its_own_json():
         "summary": {name: {"all": {**values, "pairs": 2}} for name in table1.CONFIGS},
         "pairs": [row for name in table1.CONFIGS for row in _rows(name, [0.5, 0.5])],
     }
-    written, table = table1.report(evaluated, steps=7)
-    assert json.loads(json.dumps(written))["evaluation"] == evaluated
-    assert table == table1.report(written["evaluation"], written["steps"])[1]
+    training = {name: dict.fromkeys(table1.TRAINING_STATS, 0.5) for name in table1.CONFIGS}
+    written, table = table1.report(evaluated, steps=7, training=training)
+    written = json.loads(json.dumps(written))
+    assert written["evaluation"] == evaluated
+    assert table == table1.report(written["evaluation"], written["steps"], written["training"])[1]
     assert "7 steps each from scratch, seed 0; 2 held-out pairs" in table
+    assert "| C3 | 0.5 | 0.5 | 0.5 | 0.5 | 0.5 |" in table
     # C0 scored HA e=1 on no pair: its change is undefined, not a division error.
     assert "| n/a (+0.0%) |" in table
+
+
+def test_table1_training_stats_average_only_the_runs_last_steps():
+    table1 = load("table1")
+    rows = [{"step": step, **dict.fromkeys(table1.TRAINING_STATS, float(step))}
+            for step in range(20, 1001, 20)]
+    stats = table1.training_stats(rows, last=100)
+    assert stats["usp/mean_d"] == pytest.approx(np.mean([920, 940, 960, 980, 1000]))
 
 
 def test_paper_tables_put_the_papers_value_beside_ours():

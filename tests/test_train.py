@@ -34,10 +34,6 @@ def params_of(state):
     return jax.tree.leaves(jax.device_get(state.params))
 
 
-def read_metrics(workdir):
-    return [json.loads(line) for line in (workdir / "metrics.jsonl").read_text().splitlines()]
-
-
 def mean_of(rows, key):
     return float(np.mean([r[key] for r in rows]))
 
@@ -46,7 +42,7 @@ def test_short_run_on_real_photos_lowers_the_loss(tmp_path):
     cfg = tiny_config(num_steps=60, checkpoint_every=60, batch_size=4,
                       **{"data.height": 64, "data.width": 96, "optim.learning_rate": 3e-3})
     train.fit(cfg, tmp_path, progress=False)
-    rows = read_metrics(tmp_path)
+    rows = train.read_metrics(tmp_path)
     assert [r["step"] for r in rows] == list(range(1, 61))
     assert mean_of(rows[-10:], "loss") < 0.8 * mean_of(rows[:10], "loss")
     assert (tmp_path / "config.json").exists() and list((tmp_path / "tensorboard").iterdir())
@@ -66,7 +62,7 @@ def test_fitting_one_real_photo_pair_pulls_its_point_pairs_together(tmp_path, ph
         "homography.scaling": 0, "homography.max_angle": 0, "homography.perspective": 0,
         "homography.translation": 0})
     train.fit(cfg, tmp_path / "run", progress=False)
-    rows = read_metrics(tmp_path / "run")
+    rows = train.read_metrics(tmp_path / "run")
     # Measured: mean d_k 2.40 -> 0.87 px and K 50 -> 70 (first vs last 10 steps).
     assert mean_of(rows[-10:], "usp/mean_d") < 0.6 * mean_of(rows[:10], "usp/mean_d")
     assert mean_of(rows[-10:], "usp/K") > 1.15 * mean_of(rows[:10], "usp/K")

@@ -240,6 +240,16 @@ class MetricsWriter:
             self._tb.close()
 
 
+def read_metrics(workdir: str | pathlib.Path) -> list[dict]:
+    """The rows :class:`MetricsWriter` appended to ``WORKDIR/metrics.jsonl``, in the order written
+    (``[]`` before the first log). A run resumed after a kill logs the steps after its last
+    checkpoint a second time; the later row of a step is the one its kept weights went through."""
+    path = pathlib.Path(workdir) / "metrics.jsonl"
+    if not path.is_file():
+        return []
+    return [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
+
+
 def _progress_postfix(metrics: dict[str, float], steps_per_s: float, batch_size: int) -> dict:
     return {
         "steps/s": f"{steps_per_s:.2f}",
