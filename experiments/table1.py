@@ -19,7 +19,10 @@ bootstrap over the evaluation pairs: how much of it the choice of pairs alone co
 the seed's share, which one run per configuration cannot show). From the repository root::
 
     python3 experiments/table1.py --data data/corpus/train --pairs data/heldout-pairs \
-        --workdir runs/table1 --steps 5000 --out experiments/results/table1
+        --workdir runs/table1 --steps 2000 --out experiments/results/table1
+
+2,000 steps each is what fit in one session on a 2-core CPU (18 min per configuration); it compares
+partly trained detectors (RESULTS.md). Give a longer ``--steps`` where the machine allows.
 
 Re-running resumes or skips finished runs (checkpoints in ``WORKDIR/C0`` ... ``WORKDIR/C4``);
 ``--table OUT.json`` prints the table again from a finished run's per-pair results.
@@ -176,7 +179,8 @@ def training_markdown(stats: dict[str, dict[str, float]], last: int = 200) -> st
         "|---|" + "---|" * len(TRAINING_STATS),
     ]
     for name, values in stats.items():
-        lines.append(f"| {name} | " + " | ".join(f"{values[k]:.3g}" for k in TRAINING_STATS) + " |")
+        cells = (f"{values[k]:.0f}" if k == "usp/K" else f"{values[k]:.3f}" for k in TRAINING_STATS)
+        lines.append(f"| {name} | " + " | ".join(cells) + " |")
     lines += ["", f"Logged in training (128x160 crops), means over each run's last {last} steps."]
     return "\n".join(lines)
 

@@ -103,7 +103,7 @@ def test_table1_report_renders_again_from_its_own_json():
     assert written["evaluation"] == evaluated
     assert table == table1.report(written["evaluation"], written["steps"], written["training"])[1]
     assert "7 steps each from scratch, seed 0; 2 held-out pairs" in table
-    assert "| C3 | 0.5 | 0.5 | 0.5 | 0.5 | 0.5 |" in table
+    assert "| C3 | 0.500 | 0 | 0.500 | 0.500 | 0.500 |" in table
     # C0 scored HA e=1 on no pair: its change is undefined, not a division error.
     assert "| n/a (+0.0%) |" in table
 
