@@ -213,7 +213,15 @@ def main() -> None:
     parser.add_argument("--table", help="only print the table of a finished run's OUT.json")
     args = parser.parse_args()
     if args.table:
-        written = json.loads(pathlib.Path(args.table).read_text())
+        path = pathlib.Path(args.table)
+        if not path.is_file():
+            parser.error(f"--table {path}: no such file")
+        written = json.loads(path.read_text())
+        if "evaluation" not in written:
+            parser.error(
+                f"--table {path} has no per-pair results (an older table1.py wrote it): run the"
+                " training command again, which skips the finished runs and evaluates them"
+            )
         print(report(written["evaluation"], written["steps"], written.get("training"))[1])
         return
     if not (args.data and args.pairs and args.workdir):

@@ -3,6 +3,8 @@
 import importlib.util
 import json
 import pathlib
+import subprocess
+import sys
 
 import numpy as np
 import pytest
@@ -106,6 +108,18 @@ def test_table1_report_renders_again_from_its_own_json():
     assert "| C3 | 0.500 | 0 | 0.500 | 0.500 | 0.500 |" in table
     # C0 scored HA e=1 on no pair: its change is undefined, not a division error.
     assert "| n/a (+0.0%) |" in table
+
+
+def test_table1_table_option_rejects_a_missing_or_old_file_in_one_line(tmp_path):
+    script = str(EXPERIMENTS / "table1.py")
+    old = tmp_path / "old.json"
+    old.write_text(json.dumps({"steps": 10, "summary": {}, "relative": {}}))
+    for path, message in ((tmp_path / "none.json", "no such file"), (old, "no per-pair results")):
+        run = subprocess.run(
+            [sys.executable, script, "--table", str(path)], capture_output=True, text=True
+        )
+        assert run.returncode == 2 and message in run.stderr
+        assert "Traceback" not in run.stderr
 
 
 def test_table1_training_stats_average_only_the_runs_last_steps():
