@@ -4,7 +4,7 @@ import cv2
 import numpy as np
 import pytest
 
-from usp_jax.cli import main
+from usp_jax.cli import main, parse_args
 
 TINY = ["model.backbone_channels=(8, 8, 8, 8, 16, 16, 16, 16)", "model.head_channels=16",
         "model.descriptor_dim=16", "data.height=32", "data.width=48", "batch_size=2",
@@ -102,6 +102,22 @@ def test_export_writes_weights_and_an_artifact_that_load_without_the_model(workd
     expected = inference.Detector.from_checkpoint(workdir).detect(image, top_n=10)
     (exported,) = inference.load_exported(artifact)(image[None])
     np.testing.assert_allclose(exported.keypoints, expected.keypoints, atol=1e-3)
+
+
+def test_train_overrides_may_sit_between_options_in_the_order_given():
+    args = parse_args(["train", "seed=1", "--workdir", "w", "data.height=64", "--steps", "9",
+                       "data.width=96"])
+    assert args.overrides == ["seed=1", "data.height=64", "data.width=96"]
+    assert (args.workdir, args.steps) == ("w", 9)
+
+
+@pytest.mark.parametrize("argv", [["train", "--workdir", "w", "seed=1", "--stesp", "9"],
+                                  ["evaluate", "--hpatches", "x", "seed=1"]])
+def test_a_misspelt_option_or_an_override_outside_train_is_a_parser_error(argv, capsys):
+    with pytest.raises(SystemExit) as exit_info:
+        parse_args(argv)
+    assert exit_info.value.code == 2
+    assert "unrecognized arguments" in capsys.readouterr().err.strip().splitlines()[-1]
 
 
 @pytest.mark.parametrize(

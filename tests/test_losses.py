@@ -106,14 +106,19 @@ SMALL = ModelConfig(backbone_channels=(8, 8, 8, 8, 16, 16, 16, 16), head_channel
 
 
 def predict(config, images):
-    variables = init_variables(jax.random.PRNGKey(0), config)
-    return UnsuperPoint(config).apply(variables, images), variables
+    # Compiled whole: op-by-op dispatch of the network costs several times the compile.
+    variables = jax.jit(init_variables, static_argnums=1)(jax.random.PRNGKey(0), config)
+    return jax.jit(UnsuperPoint(config).apply)(variables, images), variables
+
+
+total_loss = jax.jit(losses.total_loss, static_argnums=(3, 4))
+pair_loss = jax.jit(losses.pair_loss, static_argnums=(3, 4))
 
 
 def test_identity_homography_gives_zero_position_loss():
     images = jax.random.uniform(jax.random.PRNGKey(0), (1, 32, 48, 3))
     pred, _ = predict(SMALL, images)
-    _, metrics = losses.total_loss(pred, pred, jnp.eye(3)[None], 32, 48)
+    _, metrics = total_loss(pred, pred, jnp.eye(3)[None], 32, 48)
     assert float(metrics["usp/K"]) == 24  # every one of the 4 x 6 cells pairs with itself
     assert float(metrics["usp/mean_d"]) == pytest.approx(0.0, abs=1e-5)
     assert float(metrics["usp/score"]) == pytest.approx(0.0, abs=1e-8)
@@ -121,14 +126,14 @@ def test_identity_homography_gives_zero_position_loss():
 
 def test_zero_correspondences_give_finite_loss_and_gradients():
     images = jax.random.uniform(jax.random.PRNGKey(1), (2, 32, 48, 3))
-    variables = init_variables(jax.random.PRNGKey(0), SMALL)
+    _, variables = predict(SMALL, images)
     far_away = jnp.tile(jnp.array([[1.0, 0, 1000], [0, 1, 1000], [0, 0, 1]]), (2, 1, 1))
 
     def loss(params):
         pred = UnsuperPoint(SMALL).apply({**variables, "params": params}, images)
         return losses.total_loss(pred, pred, far_away, 32, 48)
 
-    (value, metrics), grads = jax.value_and_grad(loss, has_aux=True)(variables["params"])
+    (value, metrics), grads = jax.jit(jax.value_and_grad(loss, has_aux=True))(variables["params"])
     assert float(metrics["usp/K"]) == 0
     assert np.isfinite(float(value))
     assert all(np.all(np.isfinite(g)) for g in jax.tree.leaves(grads))
@@ -136,7 +141,7 @@ def test_zero_correspondences_give_finite_loss_and_gradients():
 
 def test_total_loss_gradient_through_the_model_is_finite_and_nonzero():
     images = jax.random.uniform(jax.random.PRNGKey(2), (2, 32, 48, 3))
-    variables = init_variables(jax.random.PRNGKey(0), SMALL)
+    _, variables = predict(SMALL, images)
     hs = jax.vmap(lambda k: geometry.sample_homography(k, 32, 48))(
         jax.random.split(jax.random.PRNGKey(3), 2))
 
@@ -145,7 +150,7 @@ def test_total_loss_gradient_through_the_model_is_finite_and_nonzero():
         pred_b = UnsuperPoint(SMALL).apply({**variables, "params": params}, images[:, ::-1])
         return losses.total_loss(pred_a, pred_b, hs, 32, 48)[0]
 
-    grads = jax.grad(loss)(variables["params"])
+    grads = jax.jit(jax.grad(loss))(variables["params"])
     norms = [float(jnp.linalg.norm(g)) for g in jax.tree.leaves(grads)]
     assert all(np.isfinite(norms)) and max(norms) > 0
 
@@ -158,13 +163,13 @@ def test_no_term_swamps_the_others_at_initialisation(photo):
     h = geometry.sample_homography(jax.random.PRNGKey(0), 240, 320)
     warped, _ = geometry.warp_image(image[0], h, (240, 320))
     model = UnsuperPoint()
-    variables = init_variables(jax.random.PRNGKey(0))
+    variables = jax.jit(init_variables)(jax.random.PRNGKey(0))
     # Training mode: BatchNorm normalises with batch statistics, as in the first train step.
     pred, _ = jax.jit(lambda x: model.apply(variables, x, train=True, mutable=["batch_stats"]))(
         jnp.concatenate([image, warped[None]]))
     pa = jax.tree.map(lambda x: x[:1], pred)
     pb = jax.tree.map(lambda x: x[1:], pred)
-    _, metrics = losses.total_loss(pa, pb, h[None], 240, 320)
+    _, metrics = total_loss(pa, pb, h[None], 240, 320)
     terms = {k: abs(float(metrics[f"loss/{k}"])) for k in ("usp", "uni_xy", "desc", "decorr")}
     print(terms)
     assert max(terms.values()) / min(terms.values()) < 100, terms
@@ -174,7 +179,7 @@ def test_similarity_metrics_are_the_mean_over_positive_and_negative_pairs():
     images = jax.random.uniform(jax.random.PRNGKey(4), (1, 32, 48, 3))
     pred, _ = predict(SMALL, images)
     pred = jax.tree.map(lambda x: x[0], pred)
-    _, metrics = losses.pair_loss(pred, pred, jnp.eye(3), 32, 48)
+    _, metrics = pair_loss(pred, pred, jnp.eye(3), 32, 48)
     corr = losses.branch_correspondences(pred, pred, jnp.eye(3), 32, 48)
     c = np.asarray(correspondence.correspondence_matrix(corr, 8.0))
     visible = np.asarray(corr.valid_a)[:, None] & np.asarray(corr.valid_b)[None, :]
@@ -185,7 +190,7 @@ def test_similarity_metrics_are_the_mean_over_positive_and_negative_pairs():
 
     one_vector = jnp.tile(pred.descriptors[:1], (pred.descriptors.shape[0], 1))
     collapsed = pred._replace(descriptors=one_vector)
-    _, metrics = losses.pair_loss(collapsed, collapsed, jnp.eye(3), 32, 48)
+    _, metrics = pair_loss(collapsed, collapsed, jnp.eye(3), 32, 48)
     assert float(metrics["desc/sim_negative"]) == pytest.approx(1.0, 1e-5)
 
 

@@ -18,8 +18,9 @@ SMALL = ModelConfig(backbone_channels=(8, 8, 8, 8, 16, 16, 16, 16), head_channel
 
 
 def apply(config, images):
-    variables = init_variables(jax.random.PRNGKey(0), config)
-    return UnsuperPoint(config).apply(variables, images)
+    # Compiled whole: op-by-op dispatch of the network costs several times the compile.
+    variables = jax.jit(init_variables, static_argnums=1)(jax.random.PRNGKey(0), config)
+    return jax.jit(UnsuperPoint(config).apply)(variables, images)
 
 
 def test_outputs_have_one_point_per_cell_with_paper_ranges():
@@ -49,7 +50,7 @@ def test_position_mapping_is_paper_eq1_in_pixel_centre_coordinates():
 
 
 def test_default_network_is_the_papers():
-    variables = init_variables(jax.random.PRNGKey(0))
+    variables = jax.eval_shape(init_variables, jax.random.PRNGKey(0))  # shapes, no compute
     kernels = [
         leaf.shape for path, leaf in jax.tree_util.tree_leaves_with_path(variables["params"])
         if path[-1].key == "kernel"

@@ -219,16 +219,28 @@ print(json.dumps({"devices": jax.device_count(), "losses": losses, "grad_norms":
 """
 
 
-def run_on_devices(n):
-    out = subprocess.run(
-        [sys.executable, "-c", DEVICE_SCRIPT, str(n), str(pathlib.Path(__file__).parent)],
-        capture_output=True, text=True, check=True, env={**os.environ, "JAX_PLATFORMS": "cpu"},
-    )
-    return json.loads(out.stdout.strip().splitlines()[-1])
+def run_on_devices(*counts):
+    """DEVICE_SCRIPT's output for each device count, the processes run side by side."""
+    env = {**os.environ, "JAX_PLATFORMS": "cpu",
+           # The tests' compilation cache (conftest.py), so a rerun compiles nothing.
+           "JAX_COMPILATION_CACHE_DIR": jax.config.jax_compilation_cache_dir or "",
+           "JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS": "0.5"}
+    processes = [
+        subprocess.Popen([sys.executable, "-c", DEVICE_SCRIPT, str(n),
+                          str(pathlib.Path(__file__).parent)],
+                         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
+        for n in counts
+    ]
+    results = []
+    for process in processes:
+        out, err = process.communicate()
+        assert process.returncode == 0, err
+        results.append(json.loads(out.strip().splitlines()[-1]))
+    return results
 
 
 def test_four_devices_compute_what_one_device_computes():
-    one, four = run_on_devices(1), run_on_devices(4)
+    one, four = run_on_devices(1, 4)
     assert (one["devices"], four["devices"]) == (1, 4)
     # Same loss and gradient on the first step up to float summation order...
     np.testing.assert_allclose(four["losses"][0], one["losses"][0], rtol=1e-5)

@@ -300,8 +300,23 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
+    """`build_parser().parse_args`, except that `train` takes KEY=VALUE overrides anywhere."""
+    parser = build_parser()
+    args, extra = parser.parse_known_args(argv)
+    # argparse fills the overrides from the first run of positionals only, so in
+    # `train a=1 --workdir W b=2` it leaves `b=2` over; anything else left over is a typo.
+    if extra and args.command == "train" and all(
+        "=" in arg and not arg.startswith("-") for arg in extra
+    ):
+        args.overrides += extra
+    elif extra:
+        parser.error(f"unrecognized arguments: {' '.join(extra)}")
+    return args
+
+
 def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
+    args = parse_args(argv)
     logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING,
                         format="%(levelname)s %(name)s: %(message)s")
     from usp_jax.train import TrainingDiverged
