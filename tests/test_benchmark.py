@@ -15,7 +15,7 @@ SMALL = ModelConfig(
 @pytest.fixture(scope="module")
 def detector():
     # Jitted, the initialisation is one compile that the persistent cache (conftest) keeps.
-    variables = jax.jit(init_variables, static_argnums=1)(jax.random.PRNGKey(0), SMALL)
+    variables = init_variables(jax.random.PRNGKey(0), SMALL)
     return Detector(variables, SMALL)
 
 

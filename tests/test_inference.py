@@ -23,7 +23,7 @@ def variables(photo):
     training, positions spread over their cells and scores over (0, 1); the untouched running
     statistics of a fresh init would put every point near its cell centre."""
     # Jitted, the initialisation is one compile that the persistent cache (conftest) keeps.
-    random = jax.jit(init_variables, static_argnums=1)(jax.random.PRNGKey(0), SMALL)
+    random = init_variables(jax.random.PRNGKey(0), SMALL)
     batch = np.stack([photo[:64, :64], photo[200:264, 200:264], photo[300:364, 100:164]])
     calibrate = UnsuperPoint(dataclasses.replace(SMALL, batch_norm_momentum=0.0))
     apply = jax.jit(functools.partial(calibrate.apply, train=True, mutable=["batch_stats"]))

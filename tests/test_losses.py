@@ -107,7 +107,7 @@ SMALL = ModelConfig(backbone_channels=(8, 8, 8, 8, 16, 16, 16, 16), head_channel
 
 def predict(config, images):
     # Compiled whole: op-by-op dispatch of the network costs several times the compile.
-    variables = jax.jit(init_variables, static_argnums=1)(jax.random.PRNGKey(0), config)
+    variables = init_variables(jax.random.PRNGKey(0), config)
     return jax.jit(UnsuperPoint(config).apply)(variables, images), variables
 
 
@@ -126,7 +126,7 @@ def test_identity_homography_gives_zero_position_loss():
 
 def test_zero_correspondences_give_finite_loss_and_gradients():
     images = jax.random.uniform(jax.random.PRNGKey(1), (2, 32, 48, 3))
-    _, variables = predict(SMALL, images)
+    variables = init_variables(jax.random.PRNGKey(0), SMALL)
     far_away = jnp.tile(jnp.array([[1.0, 0, 1000], [0, 1, 1000], [0, 0, 1]]), (2, 1, 1))
 
     def loss(params):
@@ -141,7 +141,7 @@ def test_zero_correspondences_give_finite_loss_and_gradients():
 
 def test_total_loss_gradient_through_the_model_is_finite_and_nonzero():
     images = jax.random.uniform(jax.random.PRNGKey(2), (2, 32, 48, 3))
-    _, variables = predict(SMALL, images)
+    variables = init_variables(jax.random.PRNGKey(0), SMALL)
     hs = jax.vmap(lambda k: geometry.sample_homography(k, 32, 48))(
         jax.random.split(jax.random.PRNGKey(3), 2))
 
@@ -163,7 +163,7 @@ def test_no_term_swamps_the_others_at_initialisation(photo):
     h = geometry.sample_homography(jax.random.PRNGKey(0), 240, 320)
     warped, _ = geometry.warp_image(image[0], h, (240, 320))
     model = UnsuperPoint()
-    variables = jax.jit(init_variables)(jax.random.PRNGKey(0))
+    variables = init_variables(jax.random.PRNGKey(0))
     # Training mode: BatchNorm normalises with batch statistics, as in the first train step.
     pred, _ = jax.jit(lambda x: model.apply(variables, x, train=True, mutable=["batch_stats"]))(
         jnp.concatenate([image, warped[None]]))

@@ -19,7 +19,7 @@ SMALL = ModelConfig(backbone_channels=(8, 8, 8, 8, 16, 16, 16, 16), head_channel
 
 def apply(config, images):
     # Compiled whole: op-by-op dispatch of the network costs several times the compile.
-    variables = jax.jit(init_variables, static_argnums=1)(jax.random.PRNGKey(0), config)
+    variables = init_variables(jax.random.PRNGKey(0), config)
     return jax.jit(UnsuperPoint(config).apply)(variables, images)
 
 

@@ -271,8 +271,8 @@ def compiler_options() -> dict[str, str]:
     return dict(_XLA_CPU_OPTIONS)
 
 
-# Compiled: op by op, the initialisation of the paper's network costs ~15 s of dispatch on a
-# 2-core CPU at the start of every run; compiled, about a second.
+# Compiled: dispatched op by op, initialising even the tests' small network took 15 s of a run's
+# start-up on a 2-core CPU; compiled it takes 8 s once, then comes from the compilation cache.
 @functools.partial(jax.jit, static_argnames=("config", "height", "width"))
 def init_variables(key: jax.Array, config: ModelConfig = ModelConfig(), height=64, width=64):
     """Parameters and BatchNorm statistics: ``{"params": ..., "batch_stats": ...}``.
