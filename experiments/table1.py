@@ -85,16 +85,18 @@ def config_for(name: str, data_source: str, steps: int) -> config_lib.Config:
     )
 
 
-def relative_changes(summary: dict) -> dict[str, dict[str, float]]:
-    """Per configuration and metric, the change relative to C0 in percent, positive = better;
-    NaN where C0's value is 0 (a metric none of the pairs scored on)."""
-    base = summary["C0"]
+def relative_changes(summary: dict, base: str = "C0") -> dict[str, dict[str, float]]:
+    """Per configuration and metric, the change relative to ``base`` in percent, positive =
+    better; NaN where the base value is 0 (a metric none of the pairs scored on)."""
+    reference = summary[base]
     changes = {}
     for name, values in summary.items():
         changes[name] = {}
         for metric in METRICS:
             with np.errstate(divide="ignore", invalid="ignore"):
-                change = 100.0 * np.divide(values[metric] - base[metric], np.abs(base[metric]))
+                change = 100.0 * np.divide(
+                    values[metric] - reference[metric], np.abs(reference[metric])
+                )
             change = np.where(np.isfinite(change), change, np.nan)
             change = -change if metric == "le" else change
             changes[name][metric] = float(change) if change.ndim == 0 else change
@@ -116,12 +118,12 @@ def per_pair(rows: list[dict]) -> dict[str, dict[str, np.ndarray]]:
 
 
 def bootstrap_intervals(
-    pairs: dict[str, dict[str, np.ndarray]], rounds: int = 2000, seed: int = 0
+    pairs: dict[str, dict[str, np.ndarray]], rounds: int = 2000, seed: int = 0, base: str = "C0"
 ) -> dict[str, dict[str, tuple[float, float]]]:
     """95% percentile intervals of :func:`relative_changes`, resampling the evaluation pairs with
     replacement, the same draw for every configuration (a paired bootstrap: each configuration met
     the same pairs). LE's mean skips its undefined (NaN) pairs, as ``evaluation.summarize`` does."""
-    count = len(pairs["C0"][METRICS[0]])
+    count = len(pairs[base][METRICS[0]])
     draws = np.random.default_rng(seed).integers(0, count, size=(rounds, count))
     means = {
         name: {m: np.nanmean(values[m][draws], axis=1) for m in METRICS}
@@ -129,7 +131,7 @@ def bootstrap_intervals(
     }
     intervals = {}
     for name in pairs:
-        changes = relative_changes({"C0": means["C0"], name: means[name]})[name]
+        changes = relative_changes({base: means[base], name: means[name]}, base)[name]
         intervals[name] = {
             m: tuple(float(q) for q in np.nanpercentile(changes[m], [2.5, 97.5])) for m in METRICS
         }

@@ -151,7 +151,9 @@ def test_speed_table_puts_the_papers_fps_beside_ours_per_batch():
     assert lines[4] == "| SIFT | - (47) | 20.0 (12) |"
 
 
-@pytest.mark.parametrize("later", ["cpu_photos_stage2", "cpu_photos_stage3"])
+@pytest.mark.parametrize(
+    "later", ["cpu_photos_stage2", "cpu_photos_stage3", "cpu_photos_stage4", "cpu_photos_stage5"]
+)
 def test_a_later_stage_continues_the_first_with_a_new_seed_and_a_schedule_nearly_spent_at_its_last_step(later):
     from usp_jax import config as config_lib
     from usp_jax import train
@@ -173,9 +175,30 @@ def test_a_later_stage_continues_the_first_with_a_new_seed_and_a_schedule_nearly
 def test_each_stage_has_its_own_seed_so_it_sees_other_crops_and_homographies():
     from usp_jax import config as config_lib
 
-    names = ("cpu_photos", "cpu_photos_stage2", "cpu_photos_stage3")
+    names = ("cpu_photos", "cpu_photos_stage2", "cpu_photos_stage3", "cpu_photos_stage4",
+             "cpu_photos_stage5")
     seeds = [config_lib.load(str(EXPERIMENTS / f"{name}.py")).seed for name in names]
     assert len(set(seeds)) == len(seeds)
+
+
+def test_the_viewpoint_stage_trains_on_stronger_perspective_than_the_earlier_stages():
+    import jax
+    import numpy as np
+
+    from usp_jax import config as config_lib
+    from usp_jax import geometry
+
+    def mean_perspective(name):
+        config = config_lib.load(str(EXPERIMENTS / f"{name}.py"))
+        height, width = config.data.height, config.data.width
+        keys = jax.random.split(jax.random.PRNGKey(0), 256)
+        sample = jax.vmap(lambda k: geometry.sample_homography(k, height, width, config.homography))
+        homographies = np.asarray(jax.jit(sample)(keys))
+        # |h31|, |h32| in units of the image size: 0 for affine maps.
+        return float(np.mean(np.abs(homographies[:, 2, :2]) * [width, height]))
+
+    # Its docstring measures 5x (0.0024 -> 0.0127 per pixel at 128x160).
+    assert mean_perspective("cpu_photos_stage5") > 3 * mean_perspective("cpu_photos")
 
 
 def test_chained_stages_share_one_step_axis_and_a_resumed_steps_later_row_wins():
@@ -188,3 +211,43 @@ def test_chained_stages_share_one_step_axis_and_a_resumed_steps_later_row_wins()
     assert [row["step"] for row in rows] == [1, 2, 3, 4, 5, 6]
     assert [row["loss"] for row in rows] == [9.0, 8.0, 7.0, 6.0, 5.5, 4.0]
     assert starts == [3]
+
+
+def _pair_row(method, split, k, corner_error, scene="v_a", **metrics):
+    base = {"rs": 0.5, "le": 1.0, "ha1": 1.0, "ha3": 1.0, "ha5": 1.0, "ms": 0.5}
+    return {"method": method, "scene": scene, "split": split, "k": k,
+            "corner_error": corner_error, **base, **metrics}
+
+
+def test_by_view_scores_each_viewpoint_strength_from_the_corner_errors_alone():
+    compare = load("compare")
+    rows = [
+        _pair_row("M", "v", 2, 0.5), _pair_row("M", "v", 2, 2.0, le=None),
+        _pair_row("M", "v", 3, 4.0), _pair_row("M", "v", 3, float("inf")),
+        _pair_row("M", "i", 2, 9.0),  # illumination pairs are not viewpoint strengths
+    ]
+    table = compare.by_view(rows)
+    assert list(table["M"]) == [2, 3]
+    assert table["M"][2]["pairs"] == 2
+    assert (table["M"][2]["ha1"], table["M"][2]["ha3"], table["M"][2]["ha5"]) == (0.5, 1.0, 1.0)
+    assert table["M"][2]["median_corner_error"] == pytest.approx(1.25)
+    assert table["M"][2]["le"] == 1.0  # the undefined LE is skipped, not counted as 0
+    assert (table["M"][3]["ha3"], table["M"][3]["ha5"]) == (0.0, 0.5)
+    assert table["M"][3]["median_corner_error"] == float("inf")
+
+
+def test_paired_change_of_a_new_model_is_exact_when_every_pair_moves_alike():
+    compare = load("compare")
+    scenes = [f"v_{i}" for i in range(30)]
+    base = [_pair_row("UnsuperPoint", "v", 2, 1.0, scene=s, ms=0.2 + 0.02 * i)
+            for i, s in enumerate(scenes)]
+    # Listed in another order, with a baseline's row in between: pairs are matched by scene.
+    new = [_pair_row("ORB", "v", 2, 1.0, scene="v_0")] + [
+        {**row, "ms": 1.1 * row["ms"]} for row in reversed(base)
+    ]
+    change = compare.paired_change(base, new, rounds=200)
+    assert change["ms"][0] == pytest.approx(10.0)
+    assert change["ms"][1] == pytest.approx((10.0, 10.0))
+    assert change["rs"][0] == pytest.approx(0.0)
+    with pytest.raises(ValueError, match="same pairs"):
+        compare.paired_change(base, new[:-1])

@@ -22,3 +22,28 @@ from usp_jax.losses import (
 from usp_jax.model import ModelConfig, Predictions, UnsuperPoint, init_variables
 
 __version__ = "0.1.0"
+
+__all__ = [
+    "Correspondences",
+    "Detector",
+    "HomographyConfig",
+    "LossConfig",
+    "ModelConfig",
+    "PhotometricConfig",
+    "Predictions",
+    "UnsuperPoint",
+    "compose_homographies",
+    "decorrelation_loss",
+    "descriptor_loss",
+    "find_correspondences",
+    "init_variables",
+    "invert_homography",
+    "photometric_augment",
+    "sample_homography",
+    "to_cv2",
+    "total_loss",
+    "uniform_loss",
+    "usp_loss",
+    "warp_image",
+    "warp_points",
+]

@@ -1,0 +1,111 @@
+"""Two questions about evaluations written by ``usp-jax evaluate --json``: did a new model change
+anything beyond the choice of pairs, and at which viewpoint strength each method loses its
+homography accuracy.
+
+    python3 experiments/compare.py experiments/results/heldout_240x320.json \
+        --against experiments/results/stage5/heldout_240x320.json
+
+prints, per view k of the viewpoint scenes (``usp-jax make-pairs`` draws view k = 2 ... 6 with
+growing rotation, scale and keystone), every method's HA at eps 1/3/5, median corner error, LE,
+RS and MS; and with ``--against``, the change of that file's UnsuperPoint against the first
+file's, in percent, with the 95% paired-bootstrap interval over the pairs that Table 1 uses
+(``experiments/table1.py``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib.util
+import json
+import math
+import pathlib
+
+import numpy as np
+
+_spec = importlib.util.spec_from_file_location(
+    "table1", pathlib.Path(__file__).with_name("table1.py")
+)
+table1 = importlib.util.module_from_spec(_spec)
+_spec.loader.exec_module(table1)
+
+MODEL = "UnsuperPoint"
+
+
+def by_view(rows: list[dict]) -> dict[str, dict[int, dict[str, float]]]:
+    """``{method: {k: statistics}}`` over the viewpoint ("v") pairs of evaluation rows.
+
+    HA at eps is the share of pairs whose corner error is ``<= eps`` (a failed estimate is
+    ``inf``); LE averages the pairs where it is defined, as ``evaluation.summarize`` does."""
+    grouped: dict[str, dict[int, list[dict]]] = {}
+    for row in rows:
+        if row["split"] == "v":
+            grouped.setdefault(row["method"], {}).setdefault(row["k"], []).append(row)
+    table = {}
+    for method, views in grouped.items():
+        table[method] = {}
+        for k, group in sorted(views.items()):
+            error = np.array([row["corner_error"] for row in group], np.float64)
+            le = [row["le"] for row in group if row["le"] is not None]
+            table[method][k] = {
+                "pairs": len(group),
+                **{f"ha{eps}": float(np.mean(error <= eps)) for eps in (1, 3, 5)},
+                "median_corner_error": float(np.median(error)),
+                "le": float(np.mean(le)) if le else math.nan,
+                "rs": float(np.mean([row["rs"] for row in group])),
+                "ms": float(np.mean([row["ms"] for row in group])),
+            }
+    return table
+
+
+def paired_change(base_rows: list[dict], new_rows: list[dict], rounds: int = 2000) -> dict:
+    """``{metric: (change %, (low, high))}`` of the model in ``new_rows`` against ``base_rows``:
+    positive = better (LE's sign flipped), interval from a paired bootstrap over the pairs."""
+
+    def model_rows(rows, name):
+        kept = sorted((r for r in rows if r["method"] == MODEL), key=lambda r: (r["scene"], r["k"]))
+        return [{**r, "method": name} for r in kept]
+
+    base, new = model_rows(base_rows, "base"), model_rows(new_rows, "new")
+    if [(r["scene"], r["k"]) for r in base] != [(r["scene"], r["k"]) for r in new]:
+        raise ValueError("the two evaluations did not score the same pairs")
+    pairs = table1.per_pair(base + new)
+    means = {name: {m: float(np.nanmean(v)) for m, v in metrics.items()}
+             for name, metrics in pairs.items()}
+    changes = table1.relative_changes(means, base="base")["new"]
+    intervals = table1.bootstrap_intervals(pairs, rounds=rounds, base="base")["new"]
+    return {m: (changes[m], intervals[m]) for m in table1.METRICS}
+
+
+def markdown_by_view(table: dict) -> str:
+    lines = ["| method | view k | pairs | HA e=1 | HA e=3 | HA e=5 | median corner error (px) "
+             "| LE | RS | MS |", "|" + "---|" * 10]
+    for method, views in table.items():
+        for k, s in views.items():
+            lines.append(
+                f"| {method} | {k} | {s['pairs']} | {s['ha1']:.2f} | {s['ha3']:.2f} | "
+                f"{s['ha5']:.2f} | {s['median_corner_error']:.2f} | {s['le']:.2f} | "
+                f"{s['rs']:.3f} | {s['ms']:.3f} |"
+            )
+    return "\n".join(lines)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("results", help="JSON from usp-jax evaluate --json")
+    parser.add_argument("--against", help="a second evaluation of the same pairs (a new model)")
+    parser.add_argument("--rounds", type=int, default=2000, help="bootstrap resamples")
+    args = parser.parse_args()
+    try:
+        rows = json.loads(pathlib.Path(args.results).read_text())["pairs"]
+        new_rows = json.loads(pathlib.Path(args.against).read_text())["pairs"] if args.against else None
+    except (OSError, ValueError, KeyError) as error:
+        parser.error(f"cannot read the evaluation JSON: {error}")
+    print(markdown_by_view(by_view(rows)))
+    if new_rows is not None:
+        print(f"\n{MODEL} of {args.against} against {args.results}, % change (positive = better):")
+        for metric, (change, (low, high)) in paired_change(rows, new_rows, args.rounds).items():
+            print(f"  {metric:4s} {change:+6.1f}%  [{low:+.1f}, {high:+.1f}]")
+
+
+if __name__ == "__main__":
+    main()
