@@ -64,6 +64,12 @@ def test_train_resumes_and_the_checkpoint_detects_and_evaluates(workdir, pairs_d
                  "--json", str(out), "--out", str(tmp_path / "k.png")]) == 0
     result = json.loads(out.read_text())
     assert len(result["keypoints"]) == 20 and len(result["descriptors"][0]) == 16
+    # With radius-4 NMS no two of the kept points lie within 4 px of each other.
+    assert main(["detect", str(image), "--checkpoint", str(workdir), "--top", "20",
+                 "--nms", "4", "--json", str(out)]) == 0
+    spread = np.asarray(json.loads(out.read_text())["keypoints"])
+    gaps = np.linalg.norm(spread[:, None] - spread[None], axis=-1) + 1e9 * np.eye(len(spread))
+    assert gaps.min() > 4
     assert (tmp_path / "k.png").stat().st_size > 0
     assert main(["evaluate", "--hpatches", str(pairs_dir), "--checkpoint", str(workdir),
                  "--baselines", "orb", "--plots", str(tmp_path / "plots"), "--no-progress"]) == 0
@@ -79,6 +85,7 @@ def test_train_resumes_and_the_checkpoint_detects_and_evaluates(workdir, pairs_d
         (["train", "--data", "sample", "--workdir", "{tmp}/w", "batch_size=five"], "batch_size"),
         (["evaluate", "--hpatches", "{tmp}/nothing", "--baselines-only"], "nothing"),
         (["detect", "{tmp}/absent.png", "--checkpoint", "{tmp}/none"], "none"),
+        (["detect", "{tmp}/absent.png", "--nms", "-1"], "nms_radius"),
         (["make-pairs", "--images", "{tmp}/void", "--out", "{tmp}/o"], "void"),
         (["export", "--checkpoint", "{tmp}/none", "--weights", "{tmp}/w.npz"], "none"),
     ],
