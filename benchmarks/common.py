@@ -70,7 +70,7 @@ def settled_ceiling(before: float) -> float:
     """The larger of a ceiling measured before the timings and one measured now, after them.
 
     On a shared VM one measurement can land in a slow spell: on a 2-core Zen 5 VM a single one
-    read 178 GFLOP/s where the same process measured 250-285 before and after, which put the
+    read 178 GFLOP/s where back-to-back measurements read 250-285, which put the
     network at "170% of the ceiling". A ceiling is a best case, so the better of two counts."""
     return max(before, matmul_ceiling())
 
