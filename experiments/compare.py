@@ -34,8 +34,9 @@ MODEL = "UnsuperPoint"
 def by_view(rows: list[dict]) -> dict[str, dict[int, dict[str, float]]]:
     """``{method: {k: statistics}}`` over the viewpoint ("v") pairs of evaluation rows.
 
-    HA at eps is the share of pairs whose corner error is ``<= eps`` (a failed estimate is
-    ``inf``); LE averages the pairs where it is defined, as ``evaluation.summarize`` does."""
+    The metrics are the means of the rows' own per-pair values, undefined (null) LE skipped, as
+    ``evaluation.summarize`` takes them; a failed estimate's corner error is null in the JSON
+    and counts as infinite in the median."""
     grouped: dict[str, dict[int, list[dict]]] = {}
     for row in rows:
         if row["split"] == "v":
@@ -44,15 +45,14 @@ def by_view(rows: list[dict]) -> dict[str, dict[int, dict[str, float]]]:
     for method, views in grouped.items():
         table[method] = {}
         for k, group in sorted(views.items()):
-            error = np.array([row["corner_error"] for row in group], np.float64)
-            le = [row["le"] for row in group if row["le"] is not None]
+            values = table1.per_pair(group)[method]
+            error = [math.inf if row["corner_error"] is None else row["corner_error"]
+                     for row in group]
             table[method][k] = {
                 "pairs": len(group),
-                **{f"ha{eps}": float(np.mean(error <= eps)) for eps in (1, 3, 5)},
+                **{m: float(np.nanmean(v)) if np.isfinite(v).any() else math.nan
+                   for m, v in values.items()},
                 "median_corner_error": float(np.median(error)),
-                "le": float(np.mean(le)) if le else math.nan,
-                "rs": float(np.mean([row["rs"] for row in group])),
-                "ms": float(np.mean([row["ms"] for row in group])),
             }
     return table
 
@@ -102,8 +102,12 @@ def main() -> None:
         parser.error(f"cannot read the evaluation JSON: {error}")
     print(markdown_by_view(by_view(rows)))
     if new_rows is not None:
+        try:
+            changes = paired_change(rows, new_rows, args.rounds)
+        except ValueError as error:
+            parser.error(f"{args.against} against {args.results}: {error}")
         print(f"\n{MODEL} of {args.against} against {args.results}, % change (positive = better):")
-        for metric, (change, (low, high)) in paired_change(rows, new_rows, args.rounds).items():
+        for metric, (change, (low, high)) in changes.items():
             print(f"  {metric:4s} {change:+6.1f}%  [{low:+.1f}, {high:+.1f}]")
 
 

@@ -214,16 +214,18 @@ def test_chained_stages_share_one_step_axis_and_a_resumed_steps_later_row_wins()
 
 
 def _pair_row(method, split, k, corner_error, scene="v_a", **metrics):
-    base = {"rs": 0.5, "le": 1.0, "ha1": 1.0, "ha3": 1.0, "ha5": 1.0, "ms": 0.5}
+    """A row as ``usp-jax evaluate --json`` writes it: a failed estimate's corner error is null."""
+    ha = {f"ha{eps}": float(corner_error is not None and corner_error <= eps) for eps in (1, 3, 5)}
+    base = {"rs": 0.5, "le": 1.0, **ha, "ms": 0.5}
     return {"method": method, "scene": scene, "split": split, "k": k,
             "corner_error": corner_error, **base, **metrics}
 
 
-def test_by_view_scores_each_viewpoint_strength_from_the_corner_errors_alone():
+def test_by_view_averages_each_viewpoint_strength_and_a_failed_estimate_counts_as_infinite():
     compare = load("compare")
     rows = [
         _pair_row("M", "v", 2, 0.5), _pair_row("M", "v", 2, 2.0, le=None),
-        _pair_row("M", "v", 3, 4.0), _pair_row("M", "v", 3, float("inf")),
+        _pair_row("M", "v", 3, 4.0), _pair_row("M", "v", 3, None),
         _pair_row("M", "i", 2, 9.0),  # illumination pairs are not viewpoint strengths
     ]
     table = compare.by_view(rows)
