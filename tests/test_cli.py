@@ -4,7 +4,8 @@ import cv2
 import numpy as np
 import pytest
 
-from usp_jax.cli import main, parse_args
+from usp_jax import evaluation
+from usp_jax.cli import _detect_at_most, main, parse_args
 
 TINY = ["model.backbone_channels=(8, 8, 8, 8, 16, 16, 16, 16)", "model.head_channels=16",
         "model.descriptor_dim=16", "data.height=32", "data.width=48", "batch_size=2",
@@ -77,6 +78,52 @@ def test_train_resumes_and_the_checkpoint_detects_and_evaluates(workdir, pairs_d
     assert list((tmp_path / "plots").glob("*_matches.png"))
 
 
+def test_match_recovers_a_known_homography_between_a_photo_and_its_warp(photo, tmp_path,
+                                                                         capsys):
+    # A 20 degree rotation with some scale and keystone: the shipped weights' matches and RANSAC
+    # should land within the protocol's 3 px at the corners.
+    truth = cv2.getRotationMatrix2D((256, 256), 20, 0.9)
+    truth = np.vstack([truth, [2e-4, -1e-4, 1]])
+    first, second = tmp_path / "a.png", tmp_path / "b.jpg"
+    cv2.imwrite(str(first), cv2.cvtColor(photo, cv2.COLOR_RGB2BGR))
+    cv2.imwrite(str(second), cv2.warpPerspective(cv2.cvtColor(photo, cv2.COLOR_RGB2BGR), truth,
+                                                 (512, 512)))
+    out = tmp_path / "m.json"
+    assert main(["match", str(first), str(second), "--top", "500", "--json", str(out),
+                 "--out", str(tmp_path / "m.png")]) == 0
+    printed = capsys.readouterr().out
+    assert "RANSAC inliers" in printed and "homography image1 -> image2" in printed
+    result = json.loads(out.read_text())
+    assert len(result["matches"]) == len(result["inliers"]) >= sum(result["inliers"]) >= 20
+    error = evaluation.corner_error(truth, np.array(result["homography"]), (512, 512))
+    assert error < 3
+    assert (tmp_path / "m.png").stat().st_size > 0
+
+
+class _CornerDetector:
+    """Stands in for Detector: one keypoint on the first and one on the last pixel centre of
+    whatever image it is given, and records that image's shape."""
+
+    def detect(self, image, top_n=None):
+        self.shape = image.shape
+        height, width = image.shape[:2]
+        keypoints = np.array([[0, 0], [width - 1, height - 1]], np.float32)
+        return evaluation.Features(keypoints, np.ones(2, np.float32), np.zeros((2, 4), np.float32))
+
+
+@pytest.mark.parametrize("max_side, detected_shape", [(0, (600, 800)), (1000, (600, 800)),
+                                                      (400, (300, 400))])
+def test_detection_on_a_smaller_copy_returns_keypoints_in_the_originals_pixels(max_side,
+                                                                               detected_shape):
+    detector = _CornerDetector()
+    features = _detect_at_most(detector, np.zeros((600, 800, 3), np.uint8), max_side, None)
+    assert detector.shape[:2] == detected_shape
+    # Halved by area averaging, the first pixel of the copy covers pixels 0-1 of the original
+    # (centre 0.5) and the last one pixels 798-799 (centre 798.5).
+    expected = [[0, 0], [799, 599]] if detected_shape == (600, 800) else [[0.5, 0.5], [798.5, 598.5]]
+    np.testing.assert_allclose(features.keypoints, expected)
+
+
 @pytest.mark.parametrize(
     "argv, message",
     [
@@ -86,6 +133,7 @@ def test_train_resumes_and_the_checkpoint_detects_and_evaluates(workdir, pairs_d
         (["evaluate", "--hpatches", "{tmp}/nothing", "--baselines-only"], "nothing"),
         (["detect", "{tmp}/absent.png", "--checkpoint", "{tmp}/none"], "none"),
         (["detect", "{tmp}/absent.png", "--nms", "-1"], "nms_radius"),
+        (["match", "{tmp}/absent.png", "{tmp}/other.png"], "absent.png"),
         (["make-pairs", "--images", "{tmp}/void", "--out", "{tmp}/o"], "void"),
         (["export", "--checkpoint", "{tmp}/none", "--weights", "{tmp}/w.npz"], "none"),
     ],
@@ -135,6 +183,7 @@ def test_a_misspelt_option_or_an_override_outside_train_is_a_parser_error(argv, 
         (["evaluate", "--hpatches", "x", "--res", "0x320"], "at least 8 px"),
         (["make-pairs", "--images", "x", "--out", "y", "--views", "0"], "positive integer"),
         (["benchmark", "--batch", "1", "0"], "positive integer"),
+        (["match", "a.png", "b.png", "--max-side", "-5"], "'-5' is not a non-negative integer"),
     ],
 )
 def test_sizes_and_counts_below_one_are_rejected_by_the_parser(argv, message, capsys):

@@ -1,4 +1,4 @@
-"""The ``usp-jax`` command: train, evaluate, make-pairs, benchmark, detect and demo.
+"""The ``usp-jax`` command: train, evaluate, make-pairs, benchmark, detect, match, export and demo.
 
 Every failure a user can cause (a missing folder, a corrupt image, a bad override) ends in one
 line on stderr and exit status 2, never a traceback.
@@ -14,7 +14,11 @@ import sys
 import tempfile
 import time
 
+import numpy as np
+
 _USER_ERRORS = (FileNotFoundError, ValueError, NotADirectoryError, IsADirectoryError)
+# Longest side `detect` and `match` run the network at (1280x960 for a 4:3 photo).
+MAX_SIDE = 1280
 
 
 def _resolution(text: str) -> tuple[int, int]:
@@ -27,14 +31,23 @@ def _resolution(text: str) -> tuple[int, int]:
     return height, width
 
 
-def _positive(text: str) -> int:
-    try:
-        value = int(text)
-    except ValueError:
-        value = 0
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"{text!r} is not a positive integer")
-    return value
+def _integer_at_least(minimum: int, kind: str):
+    """An argparse ``type`` accepting integers >= ``minimum``, with a one-line message."""
+
+    def parse(text: str) -> int:
+        try:
+            value = int(text)
+        except ValueError:
+            value = minimum - 1
+        if value < minimum:
+            raise argparse.ArgumentTypeError(f"{text!r} is not a {kind} integer")
+        return value
+
+    return parse
+
+
+_positive = _integer_at_least(1, "positive")
+_non_negative = _integer_at_least(0, "non-negative")
 
 
 def _load_detector(args, **options):
@@ -142,12 +155,36 @@ def cmd_benchmark(args) -> None:
         print(f"wrote {args.json}")
 
 
+def _detect_at_most(detector, image, max_side: int, top_n: int):
+    """Features of ``image`` detected at most ``max_side`` px on its longer side (0: native),
+    keypoints mapped back to the original's pixels.
+
+    A 12-megapixel phone photo at native size takes gigabytes of activations and seconds per
+    image on a CPU, and the network was trained on 240x320 views anyway. ``cv2.resize`` scales
+    about pixel corners, so a point x' of the resized image is x = (x' + 0.5) * W / W' - 0.5.
+    """
+    import cv2
+
+    from usp_jax import evaluation
+
+    height, width = image.shape[:2]
+    scale = max(height, width) / max_side if max_side else 1.0
+    if scale <= 1:
+        return detector.detect(image, top_n=top_n)
+    size = (max(round(width / scale), 8), max(round(height / scale), 8))
+    features = detector.detect(cv2.resize(image, size, interpolation=cv2.INTER_AREA), top_n=top_n)
+    factors = np.array([width / size[0], height / size[1]], np.float32)
+    return evaluation.Features(
+        (features.keypoints + 0.5) * factors - 0.5, features.scores, features.descriptors
+    )
+
+
 def cmd_detect(args) -> None:
     from usp_jax import data, plotting
 
     detector = _load_detector(args, nms_radius=args.nms)
     image = data.read_image(args.image)
-    features = detector.detect(image, top_n=args.top)
+    features = _detect_at_most(detector, image, args.max_side, args.top)
     print(f"{args.image}: {len(features.keypoints)} keypoints")
     if args.out:
         plotting.plot_keypoints(image, features.keypoints, image, features.keypoints, args.out)
@@ -156,6 +193,42 @@ def cmd_detect(args) -> None:
         pathlib.Path(args.json).write_text(json.dumps({
             "keypoints": features.keypoints.tolist(), "scores": features.scores.tolist(),
             "descriptors": features.descriptors.tolist(),
+        }))
+        print(f"wrote {args.json}")
+
+
+def cmd_match(args) -> None:
+    from usp_jax import data, evaluation, plotting
+
+    detector = _load_detector(args, nms_radius=args.nms)
+    image1, image2 = data.read_image(args.image1), data.read_image(args.image2)
+    features1, features2 = (
+        _detect_at_most(detector, image, args.max_side, args.top) for image in (image1, image2)
+    )
+    matching = evaluation.match_and_estimate(features1, features2)
+    print(
+        f"{len(features1.keypoints)} and {len(features2.keypoints)} keypoints,"
+        f" {len(matching.matches)} mutual nearest-neighbour matches,"
+        f" {int(matching.inliers.sum())} RANSAC inliers"
+        f" ({evaluation.RANSAC_THRESHOLD:g} px)"
+    )
+    if matching.homography is None:
+        print("no homography: fewer than 4 matches, or RANSAC found none")
+    else:
+        print("homography image1 -> image2:")
+        print(np.array2string(matching.homography, precision=6, suppress_small=True))
+    if args.out:
+        plotting.plot_matches(
+            image1, image2, features1.keypoints, features2.keypoints, matching.matches,
+            matching.inliers, None, matching.homography, args.out,
+        )
+        print(f"wrote {args.out}")
+    if args.json:
+        homography = None if matching.homography is None else matching.homography.tolist()
+        pathlib.Path(args.json).write_text(json.dumps({
+            "homography": homography,
+            "matches": matching.matches.tolist(), "inliers": matching.inliers.tolist(),
+            "keypoints1": features1.keypoints.tolist(), "keypoints2": features2.keypoints.tolist(),
         }))
         print(f"wrote {args.json}")
 
@@ -285,9 +358,25 @@ def build_parser() -> argparse.ArgumentParser:
     # the held-out viewpoint pairs by a third (experiments/RESULTS.md).
     p.add_argument("--nms", type=float, default=0.0,
                    help="NMS radius in px, default 0 (try 4 for homography or pose estimation)")
+    p.add_argument("--max-side", type=_non_negative, default=MAX_SIDE, metavar="PX",
+                   help=f"detect on a copy at most this long (default {MAX_SIDE}; 0: native size);"
+                        " keypoints are in the original's pixels")
     p.add_argument("--out", help="PNG with the keypoints drawn")
     p.add_argument("--json", help="keypoints, scores and descriptors as JSON")
     p.set_defaults(func=cmd_detect)
+
+    p = sub.add_parser("match", help="matches and a RANSAC homography between two images")
+    p.add_argument("image1")
+    p.add_argument("image2")
+    p.add_argument("--checkpoint")
+    p.add_argument("--top", type=_positive, default=1000)
+    p.add_argument("--nms", type=float, default=4.0,
+                   help="NMS radius in px, default 4 (spread points condition a homography better)")
+    p.add_argument("--max-side", type=_non_negative, default=MAX_SIDE, metavar="PX",
+                   help=f"detect on copies at most this long (default {MAX_SIDE}; 0: native size)")
+    p.add_argument("--out", help="PNG of the inlier matches and image 1's border warped by H")
+    p.add_argument("--json", help="homography, matches, inlier mask and keypoints as JSON")
+    p.set_defaults(func=cmd_match)
 
     p = sub.add_parser("export", help="float16 weights file or a jax.export inference artifact")
     p.add_argument("--checkpoint", help="training workdir or checkpoint (default: shipped weights)")

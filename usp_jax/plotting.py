@@ -118,7 +118,7 @@ def plot_matches(
     keypoints2: np.ndarray,
     matches: np.ndarray,
     inliers: np.ndarray,
-    true_homography: np.ndarray,
+    true_homography: np.ndarray | None,
     estimated_homography: np.ndarray | None,
     path: str | Path,
     title: str = "Matches",
@@ -126,7 +126,9 @@ def plot_matches(
     """RANSAC-filtered matches as the paper's Figure 8: the two images side by side, a line per
     inlier match, and image 1's border warped into image 2 by the true homography (green) and
     by the estimate (blue). ``matches`` [K, 2] and ``inliers`` [K] are what
-    :func:`usp_jax.evaluation.match_and_estimate` returns; a None estimate draws no blue border.
+    :func:`usp_jax.evaluation.match_and_estimate` returns. A None estimate draws no blue border;
+    a None true homography (a pair with no ground truth) no green one, and the title gives the
+    inlier count instead of the corner error.
     """
     (h1, w1), (h2, w2) = image1.shape[:2], image2.shape[:2]
     gap = max(w1, w2) // 40
@@ -150,9 +152,10 @@ def plot_matches(
     )
     axes.scatter(*np.concatenate([starts, ends]).T, s=6, color=MATCH)
     handles = [Line2D([], [], color=MATCH, label=f"{len(matches)} inlier matches")]
-    true_border = _border(true_homography, (h1, w1)) + shift
-    axes.plot(*true_border.T, color=GREEN, linewidth=2)
-    handles.append(Line2D([], [], color=GREEN, linewidth=2, label="border, true H"))
+    if true_homography is not None:
+        true_border = _border(true_homography, (h1, w1)) + shift
+        axes.plot(*true_border.T, color=GREEN, linewidth=2)
+        handles.append(Line2D([], [], color=GREEN, linewidth=2, label="border, true H"))
     if estimated_homography is None:
         subtitle = "no homography estimated"
     else:
@@ -165,9 +168,11 @@ def plot_matches(
         handles.append(
             Line2D([], [], color=BLUE, linewidth=2, linestyle="--", label="border, estimated H")
         )
-        subtitle = (
-            f"corner error {corner_error(true_homography, estimated_homography, (h1, w1)):.2f} px"
-        )
+        if true_homography is None:
+            subtitle = f"{len(matches)} of {len(inliers)} matches are inliers"
+        else:
+            error = corner_error(true_homography, estimated_homography, (h1, w1))
+            subtitle = f"corner error {error:.2f} px"
     _keep_view(axes, canvas.shape)
     figure.legend(handles=handles, loc="lower center", ncols=len(handles), frameon=False)
     figure.suptitle(f"{title} ({subtitle})")
