@@ -1,5 +1,5 @@
-"""A fifth training stage, not shipped: stage 3's weights (``cpu_photos_stage3.py``, the shipped
-ones) fine-tuned on stronger viewpoint changes, KP2D's homography ranges instead of SuperPoint's.
+"""A fifth training stage, not shipped: stage 3's weights (``cpu_photos_stage3.py``, shipped at the
+time) fine-tuned on stronger viewpoint changes, KP2D's homography ranges instead of SuperPoint's.
 
 The held-out numbers put the weak spot at viewpoint: at 240x320 HA at eps 3 is 0.963 on
 the illumination pairs and 0.725 on the viewpoint ones, with a localisation error twice as large
@@ -14,7 +14,7 @@ schedule: a fresh Adam, a new seed, 200 warm-up steps to 3e-4 and a cosine to 0.
 75 min on 2 CPU cores (1.78 steps/s with other work beside it). From the repository root::
 
     usp-jax train --config experiments/cpu_photos_stage5.py \
-        --init usp_jax/weights/unsuperpoint.npz --data data/corpus/train \
+        --init runs/stage3.npz --data data/corpus/train \
         --workdir runs/corpus-cpu-stage5
     usp-jax evaluate --checkpoint runs/corpus-cpu-stage5 --hpatches data/heldout-pairs --baselines ""
 
