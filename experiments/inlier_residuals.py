@@ -3,8 +3,8 @@ on the viewpoint pairs, measured against the true homography.
 
     python3 experiments/inlier_residuals.py --pairs data/heldout-pairs --nms 4 --baselines brisk,sift
 
-Each method goes through the evaluation's own HA path (``evaluation.detect`` with NMS,
-``shared_top_k``, ``match_and_estimate``: mutual nearest neighbours, then RANSAC at 3 px), and
+Each method goes through the evaluation's own HA path (``evaluation.detect`` with NMS, then
+``homography_matching``: shared-view top-k, mutual nearest neighbours, RANSAC at 3 px), and
 for each view k of the viewpoint scenes the script prints the mean number of inliers, the RMS of
 their distances to where the true homography puts them, the share of inliers more than 2 px off,
 and the median corner error of the estimate. Corner error grows with the inliers' RMS error and
@@ -62,10 +62,10 @@ def by_view(
         )
         for method in methods:
             features1, features2 = (evaluation.detect(method, im, nms) for im in (image1, image2))
-            kept1, kept2 = evaluation.shared_top_k(
-                features1, features2, homography, image1.shape[:2], image2.shape[:2], top_k
+            kept1, kept2, matching = evaluation.homography_matching(
+                features1, features2, homography, image1.shape[:2], image2.shape[:2], top_k,
+                method.norm,
             )
-            matching = evaluation.match_and_estimate(kept1, kept2, method.norm)
             row = inlier_residuals(kept1.keypoints, kept2.keypoints, matching, homography)
             row["corner_error"] = evaluation.corner_error(
                 homography, matching.homography, image1.shape[:2]

@@ -123,8 +123,9 @@ def _plot_first_pair(method, root, out_dir, res, top, nms):
     pair = evaluation.read_pair([f for f in files if f.scene == first][-1])
     im1, im2, h = evaluation.resize_pair(pair.image1, pair.image2, pair.homography, *res)
     f1, f2 = (evaluation.detect(method, im, nms) for im in (im1, im2))
-    f1, f2 = evaluation.shared_top_k(f1, f2, h, im1.shape[:2], im2.shape[:2], top)
-    matching = evaluation.match_and_estimate(f1, f2, method.norm)
+    f1, f2, matching = evaluation.homography_matching(
+        f1, f2, h, im1.shape[:2], im2.shape[:2], top, method.norm
+    )
     stem = f"{method.name}_{pair.scene}_1_{pair.index}"
     plotting.plot_keypoints(im1, f1.keypoints, im2, f2.keypoints, out_dir / f"{stem}_keypoints.png",
                             homography=h)

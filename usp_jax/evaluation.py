@@ -442,6 +442,22 @@ def corner_error(
     return error if math.isfinite(error) else math.inf
 
 
+def homography_matching(
+    features1: Features,
+    features2: Features,
+    homography: np.ndarray,
+    shape1: tuple[int, int],
+    shape2: tuple[int, int],
+    k: int,
+    norm: int = cv2.NORM_L2,
+) -> tuple[Features, Features, Matching]:
+    """The points and matches the homography accuracy of one pair is estimated from:
+    :func:`shared_top_k`, then :func:`match_and_estimate` on the kept points. Returns
+    (kept1, kept2, matching); ``matching`` indexes into the kept points."""
+    kept1, kept2 = shared_top_k(features1, features2, homography, shape1, shape2, k)
+    return kept1, kept2, match_and_estimate(kept1, kept2, norm)
+
+
 def homography_accuracy(
     features1: Features,
     features2: Features,
@@ -452,11 +468,13 @@ def homography_accuracy(
     norm: int = cv2.NORM_L2,
 ) -> float:
     """Corner error behind the homography accuracy (HA) of one pair, protocol section "Metrics"
-    (KP2D's ``compute_homography``): :func:`shared_top_k`, then :func:`match_and_estimate`,
-    then :func:`corner_error`. The pair is correct at tolerance eps when the returned error
-    is ``<= eps``; a failed estimate returns ``inf`` (wrong at every eps)."""
-    kept1, kept2 = shared_top_k(features1, features2, homography, shape1, shape2, k)
-    return corner_error(homography, match_and_estimate(kept1, kept2, norm).homography, shape1)
+    (KP2D's ``compute_homography``): :func:`homography_matching`, then :func:`corner_error`.
+    The pair is correct at tolerance eps when the returned error is ``<= eps``; a failed
+    estimate returns ``inf`` (wrong at every eps)."""
+    _, _, matching = homography_matching(
+        features1, features2, homography, shape1, shape2, k, norm
+    )
+    return corner_error(homography, matching.homography, shape1)
 
 
 def _directional_matching_score(
