@@ -14,12 +14,13 @@ From the repository root::
     usp-jax train --config experiments/cpu_photos_stage6.py \
         --init runs/stage3.npz --data data/corpus/train \
         --workdir runs/corpus-cpu-stage6
-    usp-jax export --checkpoint runs/corpus-cpu-stage6 --weights usp_jax/weights/unsuperpoint.npz
+    usp-jax export --checkpoint runs/corpus-cpu-stage6 --weights runs/stage6.npz
 
 2,400 steps, 92 min on 2 CPU cores (0.43 steps/s). Against stage 3 on the 160 held-out pairs
 (paired bootstrap, RESULTS.md): repeatability +0.8% and localisation error -1.8% (both beyond
 the pairs' noise; LE -2.0% at 480x640), HA and MS within noise; graf1 -> graf3 corner error
-2.76 px (stage 3 2.66; one RANSAC pair, within its noise). Shipped.
+2.76 px (stage 3 2.66; one RANSAC pair, within its noise). Shipped until stage 7
+(``cpu_photos_stage7.py``) continued it.
 """
 
 from usp_jax import config as config_lib

@@ -152,7 +152,7 @@ def test_speed_table_puts_the_papers_fps_beside_ours_per_batch():
 
 
 LATER_STAGES = ["cpu_photos_stage2", "cpu_photos_stage3", "cpu_photos_stage4",
-                "cpu_photos_stage5", "cpu_photos_stage6"]
+                "cpu_photos_stage5", "cpu_photos_stage6", "cpu_photos_stage7"]
 
 
 @pytest.mark.parametrize("later", LATER_STAGES)
@@ -183,11 +183,12 @@ def test_the_128x160_stages_train_on_the_first_stages_crops_and_losses(later):
     assert (stage.data, stage.loss) == (first.data, first.loss)
 
 
-def test_the_paper_size_stage_keeps_the_pixel_scale_of_the_128x160_crops_and_the_papers_loss():
+@pytest.mark.parametrize("later", LATER_STAGES[4:])
+def test_the_paper_size_stages_keep_the_pixel_scale_of_the_128x160_crops_and_the_papers_loss(later):
     from usp_jax import config as config_lib
 
     first = config_lib.load(str(EXPERIMENTS / "cpu_photos.py"))
-    stage = config_lib.load(str(EXPERIMENTS / "cpu_photos_stage6.py"))
+    stage = config_lib.load(str(EXPERIMENTS / f"{later}.py"))
     assert (stage.data.height, stage.data.width) == (240, 320)
     # Output pixels per unit of the photo's extent: the same range of content scales.
     assert np.allclose(np.divide(stage.data.width, stage.data.scale_range),
