@@ -17,20 +17,20 @@ beyond the pairs' noise, RS, HA@1 and HA@3 within it; 480x640 LE +0.9% and MS +1
 it, HA@1 +9.3% at its edge. Shipped.
 """
 
+import pathlib
+
 from usp_jax import config as config_lib
 
 
 def get_config() -> config_lib.Config:
+    # Stage 6's setting (crops, losses, batch, logging), with only what this stage changes.
+    stage6 = config_lib.load(str(pathlib.Path(__file__).with_name("cpu_photos_stage6.py")))
     return config_lib.override(
-        config_lib.paper(),
+        stage6,
         [
             "seed=7",
             "optim.learning_rate=1e-4",
-            "optim.warmup_steps=100",
             "num_steps=1700",
             "optim.decay_steps=1600",
-            "checkpoint_every=250",
-            "log_every=20",
-            "keep_checkpoints=2",
         ],
     )
