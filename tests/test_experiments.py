@@ -152,7 +152,8 @@ def test_speed_table_puts_the_papers_fps_beside_ours_per_batch():
 
 
 LATER_STAGES = ["cpu_photos_stage2", "cpu_photos_stage3", "cpu_photos_stage4",
-                "cpu_photos_stage5", "cpu_photos_stage6", "cpu_photos_stage7"]
+                "cpu_photos_stage5", "cpu_photos_stage6", "cpu_photos_stage7",
+                "cpu_photos_stage8"]
 
 
 @pytest.mark.parametrize("later", LATER_STAGES)
