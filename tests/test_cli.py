@@ -76,6 +76,9 @@ def test_train_resumes_and_the_checkpoint_detects_and_evaluates(workdir, pairs_d
                  "--baselines", "orb", "--plots", str(tmp_path / "plots"), "--no-progress"]) == 0
     assert "UnsuperPoint" in capsys.readouterr().out
     assert list((tmp_path / "plots").glob("*_matches.png"))
+    assert main(["evaluate", "--hpatches", str(pairs_dir), "--checkpoint", str(workdir),
+                 "--baselines", "", "--upsample", "2", "--no-progress"]) == 0
+    assert "model on 2x upsampled images" in capsys.readouterr().out
 
 
 def test_match_recovers_a_known_homography_between_a_photo_and_its_warp(photo, tmp_path,
@@ -164,6 +167,14 @@ def test_train_overrides_may_sit_between_options_in_the_order_given():
                        "data.width=96"])
     assert args.overrides == ["seed=1", "data.height=64", "data.width=96"]
     assert (args.workdir, args.steps) == ("w", 9)
+
+
+@pytest.mark.parametrize("value", ["0", "1.5", "two"])
+def test_upsample_below_one_or_not_an_integer_is_a_parser_error(value, capsys):
+    with pytest.raises(SystemExit) as exit_info:
+        parse_args(["detect", "a.png", "--upsample", value])
+    assert exit_info.value.code == 2
+    assert "is not a positive integer" in capsys.readouterr().err.strip().splitlines()[-1]
 
 
 @pytest.mark.parametrize("argv", [["train", "--workdir", "w", "seed=1", "--stesp", "9"],

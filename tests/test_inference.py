@@ -108,17 +108,20 @@ def test_top_n_keeps_the_highest_scores(detector, image):
     assert_same_features(best, evaluation.Features(*(a[:5] for a in everything)))
 
 
-@pytest.mark.parametrize("radius", [4.0, 12.0])
-def test_radius_nms_matches_evaluation_nms_radius(radius):
+@pytest.mark.parametrize("radius, cell", [(4.0, 8.0), (12.0, 8.0), (4.0, 4.0), (9.0, 4.0)])
+def test_radius_nms_matches_evaluation_nms_radius(radius, cell):
+    # cell 4: the candidates of a network run on the image enlarged twice, in input pixels.
     cells_h, cells_w = 6, 7
     rng = np.random.default_rng(int(radius))
     m = cells_h * cells_w
     relative = rng.uniform(size=(m, 2)).astype(np.float32)
     rows, cols = np.divmod(np.arange(m), cells_w)
-    keypoints = (np.stack([cols, rows], axis=1) + relative) * 8 - 0.5
+    keypoints = (np.stack([cols, rows], axis=1) + relative) * cell - 0.5
     scores = rng.uniform(size=m).astype(np.float32)
     valid = rng.uniform(size=m) < 0.9
-    keep = np.asarray(inference.radius_nms(keypoints, scores, valid, cells_h, cells_w, radius))
+    keep = np.asarray(
+        inference.radius_nms(keypoints, scores, valid, cells_h, cells_w, radius, cell)
+    )
     candidates = np.flatnonzero(valid)
     expected = candidates[evaluation.nms_radius(keypoints[candidates], scores[candidates], radius)]
     assert 0 < len(expected) < len(candidates)  # the test exercises suppression
@@ -134,6 +137,37 @@ def test_detector_nms_keeps_points_apart_like_evaluation(detector, variables, im
     expected = evaluation.nms_radius(candidates.keypoints, candidates.scores, radius)
     assert len(expected) < len(candidates.scores)
     assert_same_features(kept, evaluation.Features(*(a[expected] for a in candidates)))
+
+
+def test_upsample_equals_the_network_on_an_opencv_enlarged_image_mapped_back(variables, photo):
+    # Multiples of 16 make OpenCV's fixed-point bilinear 2x enlargement exact in uint8 (weights
+    # 9/16, 3/16, 1/16), so both paths feed the network the same pixels: what is left to agree
+    # on is the resampling grid (pixel centres aligned, edges replicated) and the mapping back.
+    image = (photo[100:164, 100:196] // 16 * 16).astype(np.uint8)
+    height, width = image.shape[:2]
+    enlarged = cv2.resize(image, (2 * width, 2 * height), interpolation=cv2.INTER_LINEAR)
+    on_enlarged = Detector(variables, SMALL).detect(enlarged)
+    upsampled = Detector(variables, SMALL, upsample=2).detect(image)
+    assert len(upsampled.scores) == (height // 4) * (width // 4)
+    mapped = (on_enlarged.keypoints + 0.5) / 2 - 0.5
+    assert_same_features(upsampled, on_enlarged._replace(keypoints=mapped), atol=1e-4)
+    assert np.all(inside(upsampled.keypoints, height, width))
+
+
+def test_upsample_with_nms_and_padding_keeps_points_inside_and_apart(variables, image):
+    odd = image[:37, :53]
+    candidates = Detector(variables, SMALL, upsample=2).detect(odd)
+    assert np.all(inside(candidates.keypoints, 37, 53))
+    kept = Detector(variables, SMALL, upsample=2, nms_radius=4).detect(odd)
+    expected = evaluation.nms_radius(candidates.keypoints, candidates.scores, 4.0)
+    assert len(expected) < len(candidates.scores)
+    assert_same_features(kept, evaluation.Features(*(a[expected] for a in candidates)))
+
+
+@pytest.mark.parametrize("upsample", [0, -2, 1.5, True])
+def test_upsample_must_be_a_positive_integer(variables, upsample):
+    with pytest.raises(ValueError, match="upsample must be a positive integer"):
+        Detector(variables, SMALL, upsample=upsample)
 
 
 def test_border_drops_points_near_the_edges(detector, variables, image):
@@ -252,9 +286,10 @@ def test_from_checkpoint_restores_the_trained_variables(variables, detector, ima
     assert_same_features(restored.detect(image), detector.detect(image))
 
 
-def test_exported_detector_runs_without_the_model(variables, image, tmp_path):
+@pytest.mark.parametrize("upsample", [1, 2])
+def test_exported_detector_runs_without_the_model(variables, image, tmp_path, upsample):
     path = tmp_path / "detector.jax"
-    source = Detector(variables, SMALL, top_n=6, nms_radius=10)
+    source = Detector(variables, SMALL, top_n=6, nms_radius=10, upsample=upsample)
     inference.export(source, path, 37, 53)
     run = inference.load_exported(path)
     stack = np.stack([image[:37, :53], image[3:, 3:]])
@@ -270,6 +305,8 @@ def test_as_method_returns_every_candidate_for_uniform_evaluation(variables, ima
     features = method.detect(image)
     assert method.name == "UnsuperPoint" and method.norm == cv2.NORM_L2
     assert len(features.scores) == (40 // 8) * (56 // 8)
+    upsampled = inference.as_method(Detector(variables, SMALL, top_n=3, upsample=2))
+    assert len(upsampled.detect(image).scores) == (40 // 4) * (56 // 4)
 
 
 def test_to_cv2_points_match_and_give_a_homography(detector, photo):

@@ -129,6 +129,7 @@ def benchmark(
         "host": f"{platform.machine()}, {os.cpu_count()} cores",
         "model": dataclasses.asdict(detector.model_config),
         "nms_radius": detector.nms_radius,
+        "upsample": detector.upsample,
         "repeats": repeats,
         "warmup": warmup,
         "rows": rows,

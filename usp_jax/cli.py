@@ -50,9 +50,17 @@ _positive = _integer_at_least(1, "positive")
 _non_negative = _integer_at_least(0, "non-negative")
 
 
+def _add_upsample(parser) -> None:
+    # SIFT doubles its input for the same reason: the positions come back finer (RESULTS.md).
+    parser.add_argument("--upsample", type=_positive, default=1, metavar="S",
+                        help="run the network on the image enlarged S times (default 1, the"
+                             " paper's detector; 2: finer keypoints for 4x the compute)")
+
+
 def _load_detector(args, **options):
     from usp_jax.inference import Detector
 
+    options.setdefault("upsample", getattr(args, "upsample", 1))
     if getattr(args, "checkpoint", None):
         return Detector.from_checkpoint(args.checkpoint, **options)
     return Detector.pretrained(**options)
@@ -101,7 +109,8 @@ def cmd_evaluate(args) -> None:
         methods, args.hpatches, height=height, width=width, top_k=args.top, nms=args.nms,
         progress=not args.no_progress,
     )
-    print(f"{args.hpatches} at {height}x{width}, top {args.top} points, NMS {args.nms}")
+    upsampled = f", model on {args.upsample}x upsampled images" if args.upsample > 1 else ""
+    print(f"{args.hpatches} at {height}x{width}, top {args.top} points, NMS {args.nms}{upsampled}")
     print(evaluation.format_table(results))
     if args.json:
         pathlib.Path(args.json).write_text(json.dumps(evaluation.to_json(results), indent=1))
@@ -243,7 +252,8 @@ def cmd_export(args) -> None:
         print(f"wrote {args.weights} (float16)")
     if args.artifact:
         detector = inference.Detector(detector.variables, detector.model_config,
-                                      top_n=args.top, nms_radius=args.nms)
+                                      top_n=args.top, nms_radius=args.nms,
+                                      upsample=detector.upsample)
         inference.export(detector, args.artifact, *args.res)
         print(f"wrote {args.artifact} (jax.export, uint8 [b, {args.res[0]}, {args.res[1]}, 3])")
     if not (args.weights or args.artifact):
@@ -330,6 +340,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--json", help="write aggregate and per-pair numbers here")
     p.add_argument("--plots", help="folder for keypoint and match PNGs")
     p.add_argument("--no-progress", action="store_true")
+    _add_upsample(p)
     p.set_defaults(func=cmd_evaluate)
 
     p = sub.add_parser("make-pairs", help="HPatches-layout pairs from any folder of photos")
@@ -349,6 +360,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--repeats", type=_positive, default=10)
     p.add_argument("--no-opencv", action="store_true")
     p.add_argument("--json")
+    _add_upsample(p)
     p.set_defaults(func=cmd_benchmark)
 
     p = sub.add_parser("detect", help="keypoints of one image")
@@ -364,6 +376,7 @@ def build_parser() -> argparse.ArgumentParser:
                         " keypoints are in the original's pixels")
     p.add_argument("--out", help="PNG with the keypoints drawn")
     p.add_argument("--json", help="keypoints, scores and descriptors as JSON")
+    _add_upsample(p)
     p.set_defaults(func=cmd_detect)
 
     p = sub.add_parser("match", help="matches and a RANSAC homography between two images")
@@ -377,6 +390,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help=f"detect on copies at most this long (default {MAX_SIDE}; 0: native size)")
     p.add_argument("--out", help="PNG of the inlier matches and image 1's border warped by H")
     p.add_argument("--json", help="homography, matches, inlier mask and keypoints as JSON")
+    _add_upsample(p)
     p.set_defaults(func=cmd_match)
 
     p = sub.add_parser("export", help="float16 weights file or a jax.export inference artifact")
@@ -386,6 +400,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--res", type=_resolution, default=(240, 320), help="artifact input HxW")
     p.add_argument("--top", type=_positive, default=1000, help="artifact keeps this many points")
     p.add_argument("--nms", type=int, default=0, help="artifact NMS radius in px")
+    _add_upsample(p)
     p.set_defaults(func=cmd_export)
 
     p = sub.add_parser("demo", help="the whole pipeline on bundled photos, offline, in minutes")
