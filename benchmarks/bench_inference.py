@@ -9,6 +9,10 @@ the same run.
 
     python3 benchmarks/bench_inference.py                    # 240x320, batch 1 and 10
     python3 benchmarks/bench_inference.py --size 480x640 --batch 1
+    python3 benchmarks/bench_inference.py --no-torch --upsample 2   # + Detector(upsample=2)
+
+With ``--upsample S`` a ``Detector(upsample=S)`` row joins the alternation; its GFLOP/s count
+the network on the S times larger image.
 """
 
 from __future__ import annotations
@@ -52,6 +56,8 @@ def main() -> None:
     parser.add_argument("--rounds", type=int, default=3, help="alternations of the methods")
     parser.add_argument("--block", type=int, default=5, help="timed calls per round and method")
     parser.add_argument("--no-torch", action="store_true")
+    parser.add_argument("--upsample", type=int, default=1,
+                        help="also time Detector(upsample=S) when S > 1")
     parser.add_argument("--json", help="also write the results to this file")
     args = parser.parse_args()
 
@@ -67,6 +73,8 @@ def main() -> None:
     from usp_jax.inference import Detector
 
     detector = Detector(variables, config, top_n=args.top)
+    upsampled = Detector(variables, config, top_n=args.top, upsample=args.upsample)
+    upsampled_name = f"Detector(upsample={args.upsample})"
     if not args.no_torch:
         import torch
         import torch_reference
@@ -88,6 +96,8 @@ def main() -> None:
         compile_s = time.perf_counter() - start
         runs = {"JAX jit(apply + top_k)": lambda: compiled(variables, device_images),
                 "usp_jax.Detector.detect_batch": lambda: detector.detect_batch(images)}
+        if args.upsample > 1:
+            runs[upsampled_name] = lambda: upsampled.detect_batch(images)
         if not args.no_torch:
             torch_images = torch.from_numpy(images)
 
@@ -110,7 +120,8 @@ def main() -> None:
         print(f"batch {batch} (JAX compile {rows[0]['compile_s']:.1f} s):")
         for row in rows:
             seconds = statistics.median(row["seconds"])
-            rate = batch * gflop / seconds
+            scale = args.upsample**2 if row["method"] == upsampled_name else 1
+            rate = batch * gflop * scale / seconds
             print(f"  {row['method']:32s} {common.summary(row['seconds'])}  "
                   f"{batch / seconds:6.2f} img/s  {rate:5.1f} GFLOP/s = {rate / ceiling:4.0%} of "
                   "the ceiling")
