@@ -153,7 +153,9 @@ def test_speed_table_puts_the_papers_fps_beside_ours_per_batch():
 
 LATER_STAGES = ["cpu_photos_stage2", "cpu_photos_stage3", "cpu_photos_stage4",
                 "cpu_photos_stage5", "cpu_photos_stage6", "cpu_photos_stage7",
-                "cpu_photos_stage8"]
+                "cpu_photos_stage8", "cpu_photos_stage9"]
+# The 240x320 stages that keep the 128x160 stages' range of content scales (stage 9 widens it).
+PAPER_SIZE_STAGES = ["cpu_photos_stage6", "cpu_photos_stage7", "cpu_photos_stage8"]
 
 
 @pytest.mark.parametrize("later", LATER_STAGES)
@@ -184,7 +186,7 @@ def test_the_128x160_stages_train_on_the_first_stages_crops_and_losses(later):
     assert (stage.data, stage.loss) == (first.data, first.loss)
 
 
-@pytest.mark.parametrize("later", LATER_STAGES[4:])
+@pytest.mark.parametrize("later", PAPER_SIZE_STAGES)
 def test_the_paper_size_stages_keep_the_pixel_scale_of_the_128x160_crops_and_the_papers_loss(later):
     from usp_jax import config as config_lib
 
@@ -198,6 +200,21 @@ def test_the_paper_size_stages_keep_the_pixel_scale_of_the_128x160_crops_and_the
     # rescaled lambda_d and alpha_desc for.
     assert stage.loss == config_lib.paper().loss
     assert stage.batch_size == config_lib.paper().batch_size
+
+
+def test_the_scale_stage_adds_twice_as_zoomed_in_crops_and_changes_nothing_else():
+    import dataclasses
+
+    from usp_jax import config as config_lib
+
+    stage7 = config_lib.load(str(EXPERIMENTS / "cpu_photos_stage7.py"))
+    stage9 = config_lib.load(str(EXPERIMENTS / "cpu_photos_stage9.py"))
+    # A photo's extent maps to width / f output pixels: 320-640 before, 320-1280 now.
+    assert np.divide(stage9.data.width, stage9.data.scale_range).tolist() == [1280, 320]
+    assert np.divide(stage7.data.width, stage7.data.scale_range).tolist() == [640, 320]
+    assert dataclasses.replace(stage9.data, scale_range=stage7.data.scale_range) == stage7.data
+    assert (stage9.model, stage9.loss, stage9.homography, stage9.photometric) == (
+        stage7.model, stage7.loss, stage7.homography, stage7.photometric)
 
 
 def test_each_stage_has_its_own_seed_so_it_sees_other_crops_and_homographies():
