@@ -1,8 +1,9 @@
 """Running a trained UnsuperPoint: images of any size in, sorted keypoints and descriptors out.
 
-One jitted function per detector does everything on the device: uint8 -> float, the network,
-dropping points in the padding and the border, radius NMS, top-N selection and the gather of
-the selected descriptors (interpolated inside the model, paper section 2.4). The host only pads
+One jitted function per detector does everything on the device: uint8 -> float, an optional
+enlargement (``upsample``), the network, dropping points in the padding and the border, radius
+NMS, top-N selection and the gather of the selected descriptors (interpolated inside the model,
+paper section 2.4). The host only pads
 images to whole 8x8 cells and slices the fixed-size results. Coordinates follow the project's
 convention (``usp_jax.model`` docstring): (x, y), pixel centres at integers, as in OpenCV.
 
@@ -132,10 +133,11 @@ def radius_nms(
     ``cell`` is a cell's side in the keypoints' pixels (8; 8 / s for a network run on the image
     enlarged s times). Two facts make this cheap with fixed shapes. A point stays inside its
     cell, so points d cells apart are at least ``cell * (d - 1)`` px apart and only cells within
-    ``floor(radius / cell) + 1`` can interact (3x3 cells for radius 4 at 8 px). And the greedy result is the
-    unique fixed point of ``keep_i = valid_i and no kept stronger neighbour``: iterating that map
-    from ``keep = valid`` settles one more level of the dependency chain per step, so the loop
-    stops after (longest chain of suppressions) steps, usually a handful, never more than M.
+    ``floor(radius / cell) + 1`` can interact (3x3 cells for radius 4 at 8 px). And the greedy
+    result is the unique fixed point of ``keep_i = valid_i and no kept stronger neighbour``:
+    iterating that map from ``keep = valid`` settles one more level of the dependency chain per
+    step, so the loop stops after (longest chain of suppressions) steps, usually a handful, never
+    more than M.
     """
     reach = int(radius // cell) + 1
     m = scores.shape[0]
@@ -210,9 +212,9 @@ def _detect_padded(
     """uint8 [B, H, W, 3] (H, W multiples of 8) + sizes [B, 2] -> :func:`_select_points` output.
 
     ``upsample`` s > 1 runs the network on the images enlarged s times (bilinear, pixel centres
-    aligned) and maps its keypoints back: the cells shrink to 8 / s input pixels, so the
-    positions, regressed to a roughly constant precision in the network's pixels, come back s
-    times finer (SIFT's first octave doubles its input for the same reason).
+    aligned) and maps its keypoints back: the cells shrink to 8 / s input pixels, and positions
+    regressed to a roughly constant precision in the network's pixels come back finer (LE 0.70
+    -> 0.46 px at s = 2 on the held-out pairs; SIFT doubles its input for the same reason).
     """
     pixels = images.astype(jnp.float32) / 255.0
     if upsample > 1:
@@ -310,7 +312,8 @@ class Detector:
             raise ValueError(
                 f"nms_radius and border must be >= 0, got nms_radius={nms_radius}, border={border}"
             )
-        if not isinstance(upsample, (int, np.integer)) or isinstance(upsample, bool) or upsample < 1:
+        integer = isinstance(upsample, (int, np.integer)) and not isinstance(upsample, bool)
+        if not integer or upsample < 1:
             raise ValueError(f"upsample must be a positive integer, got {upsample!r}")
         if jax.default_backend() == "cpu":
             model_config = dataclasses.replace(model_config, dtype="float32")
