@@ -56,6 +56,15 @@ def test_format_benchmark_is_the_papers_table_layout(tiny_run):
     # Classical detectors first, then UnsuperPoint per batch size, as in Table 5.
     assert labels[1:7] == [*OPENCV_DETECTORS, "UnsuperPoint, b1", "UnsuperPoint, b2"]
     assert "First call (s)" in labels
+    assert "enlarged" not in table
+
+
+def test_an_upsampled_detector_is_recorded_and_named_in_the_table(detector):
+    upsampled = Detector(detector.variables, SMALL, upsample=2)
+    result = benchmark(upsampled, resolutions=((32, 48),), batch_sizes=(1,), repeats=1,
+                       warmup=0, include_opencv=False)
+    assert result["upsample"] == 2
+    assert "UnsuperPoint on 2x enlarged images" in format_benchmark(result)
 
 
 def test_protocol_top_n_follows_the_evaluation_settings():

@@ -140,6 +140,7 @@ def format_benchmark(result: dict) -> str:
     """The paper's Table 5 layout: one row per detector (UnsuperPoint per batch size), one fps
     column per resolution; then UnsuperPoint's first-call (compile) times."""
     resolutions = list(dict.fromkeys((r["height"], r["width"]) for r in result["rows"]))
+    upsample = result.get("upsample", 1)  # files written before the option have none
     labels, cells, compile_s = [], {}, {}
     for row in result["rows"]:
         label = row["method"]
@@ -157,7 +158,8 @@ def format_benchmark(result: dict) -> str:
         f"{UNSUPERPOINT} on {result['device']} ({result['platform']}), JAX {result['jax_version']};"
         f" OpenCV {result['opencv_version']} on the host CPU ({result['host']})",
         f"median of {result['repeats']} calls after {result['warmup']} warm-up calls,"
-        " end to end (uint8 images in, numpy points out)",
+        " end to end (uint8 images in, numpy points out)"
+        + (f"; {UNSUPERPOINT} on {upsample}x enlarged images" if upsample > 1 else ""),
         "",
         f"{'Detectors':<{width}} | " + " | ".join(f"{c:>15}" for c in columns),
         "-" * (width + 1) + "".join("+" + "-" * 17 for _ in columns),
