@@ -57,6 +57,10 @@ FILES = {
     "480x640": "heldout_480x640.json",
     "240x320 NMS 4": "heldout_240x320_nms4.json",
 }
+# The same weights run on 2x enlarged images (``--upsample 2``), shown under the paper's
+# detector when the file exists; the paper has no such row.
+UPSAMPLED = "UnsuperPoint, upsample 2"
+UPSAMPLED_FILES = {setting: name.replace(".json", "_up2.json") for setting, name in FILES.items()}
 TITLES = {"rs": "RS", "le": "LE", "ha1": "HA e=1", "ha3": "HA e=3", "ha5": "HA e=5", "ms": "MS"}
 
 
@@ -75,6 +79,20 @@ def table(ours: dict, paper: dict, metrics: tuple[str, ...]) -> list[str]:
             cells.append(ours_text + (f" ({theirs:.3f})" if theirs is not None else ""))
         lines.append(f"| {method} | " + " | ".join(cells) + " |")
     return lines
+
+
+def with_upsampled(ours: dict, path: pathlib.Path) -> dict:
+    """``ours`` with the upsampled model's summary inserted after UnsuperPoint, if ``path`` is a
+    file (an ``evaluate --upsample 2 --json`` of the same setting)."""
+    if not path.is_file():
+        return ours
+    upsampled = json.loads(path.read_text())["summary"]["UnsuperPoint"]
+    merged = {}
+    for method, values in ours.items():
+        merged[method] = values
+        if method == "UnsuperPoint":
+            merged[UPSAMPLED] = upsampled
+    return merged
 
 
 def speed_table(benchmark: dict) -> list[str]:
@@ -111,7 +129,8 @@ def main() -> None:
         path = folder / name
         if not path.is_file():
             raise FileNotFoundError(f"{path} is missing: run the evaluation commands of RESULTS.md")
-        ours = json.loads(path.read_text())["summary"]
+        ours = with_upsampled(json.loads(path.read_text())["summary"],
+                              folder / UPSAMPLED_FILES[setting])
         out += [f"### {setting}, {'300' if setting.startswith('240') else '1000'} points", ""]
         metrics = ("ha1", "ha3", "ha5", "ms") if "NMS" in setting else tuple(TITLES)
         out += table(ours, PAPER[setting], metrics) + [""]

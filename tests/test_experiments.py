@@ -138,6 +138,18 @@ def test_paper_tables_put_the_papers_value_beside_ours():
     assert lines[3] == "| Mine | 0.700 | 1.000 |"
 
 
+def test_paper_tables_show_the_upsampled_model_under_the_paper_detector_when_evaluated(tmp_path):
+    paper_tables = load("paper_tables")
+    ours = {"UnsuperPoint": {"all": {"rs": 0.7}}, "SIFT": {"all": {"rs": 0.6}}}
+    missing = tmp_path / "heldout_240x320_up2.json"
+    assert paper_tables.with_upsampled(ours, missing) == ours
+    missing.write_text(json.dumps({"summary": {"UnsuperPoint": {"all": {"rs": 0.8}}}}))
+    merged = paper_tables.with_upsampled(ours, missing)
+    assert list(merged) == ["UnsuperPoint", paper_tables.UPSAMPLED, "SIFT"]
+    lines = paper_tables.table(merged, paper_tables.PAPER["240x320"], ("rs",))
+    assert lines[3] == "| UnsuperPoint, upsample 2 | 0.800 |"
+
+
 def test_speed_table_puts_the_papers_fps_beside_ours_per_batch():
     paper_tables = load("paper_tables")
     rows = [
