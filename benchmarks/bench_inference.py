@@ -73,8 +73,9 @@ def main() -> None:
     from usp_jax.inference import Detector
 
     detector = Detector(variables, config, top_n=args.top)
-    upsampled = Detector(variables, config, top_n=args.top, upsample=args.upsample)
     upsampled_name = f"Detector(upsample={args.upsample})"
+    if args.upsample > 1:
+        upsampled = Detector(variables, config, top_n=args.top, upsample=args.upsample)
     if not args.no_torch:
         import torch
         import torch_reference

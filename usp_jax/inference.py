@@ -3,9 +3,9 @@
 One jitted function per detector does everything on the device: uint8 -> float, an optional
 enlargement (``upsample``), the network, dropping points in the padding and the border, radius
 NMS, top-N selection and the gather of the selected descriptors (interpolated inside the model,
-paper section 2.4). The host only pads
-images to whole 8x8 cells and slices the fixed-size results. Coordinates follow the project's
-convention (``usp_jax.model`` docstring): (x, y), pixel centres at integers, as in OpenCV.
+paper section 2.4). The host only pads images to whole 8x8 cells and slices the fixed-size
+results. Coordinates follow the project's convention (``usp_jax.model`` docstring): (x, y),
+pixel centres at integers, as in OpenCV.
 
 Padding: images are padded at the bottom and right by *edge replication* to a multiple of 8.
 Zero padding would put an artificial black step right after the last row/column, which the
@@ -169,7 +169,7 @@ def _select_points(
     top_n: int | None,
     nms_radius: float,
     border: float,
-    cell: float = CELL,
+    cell: float,
 ) -> tuple[jax.Array, ...]:
     """Drop padding/border points, NMS, top-N: batched Predictions -> fixed-size outputs.
 
@@ -222,10 +222,11 @@ def _detect_padded(
         shape = (batch, height * upsample, width * upsample, channels)
         pixels = jax.image.resize(pixels, shape, "linear")
     predictions = model.apply(variables, pixels, train=False)
-    # Pixel centres sit at integers: input pixel x spans [x - 0.5, x + 0.5], s network pixels.
-    predictions = predictions._replace(
-        keypoints=(predictions.keypoints + 0.5) / upsample - 0.5
-    )
+    if upsample > 1:
+        # Pixel centres sit at integers: input pixel x spans [x - 0.5, x + 0.5], s network pixels.
+        predictions = predictions._replace(
+            keypoints=(predictions.keypoints + 0.5) / upsample - 0.5
+        )
     cells_h, cells_w = pixels.shape[1] // CELL, pixels.shape[2] // CELL
     return _select_points(
         predictions, sizes, cells_h, cells_w, top_n, nms_radius, border, CELL / upsample
