@@ -44,6 +44,29 @@ def test_brightness_alone_scales_every_pixel_by_one_factor():
     assert 0.7 <= gain.flat[0] <= 1.3 and gain.flat[0] != 1.0
 
 
+def test_gamma_alone_raises_every_pixel_to_one_power_within_its_interval():
+    config = PhotometricConfig(**{**ZERO, "gamma": 1.0}, p_gamma=1.0)
+    sources = np.stack([image()] * 8)
+    augmented = augment_batch(config, sources)
+    for source, result in zip(sources, augmented):
+        exponent = np.log(result) / np.log(source)
+        np.testing.assert_allclose(exponent, exponent.flat[0], rtol=1e-4)
+        assert 0.5 <= exponent.flat[0] <= 2.0
+        np.testing.assert_allclose(result, source ** exponent.flat[0], rtol=1e-5)
+    assert len(np.unique(np.round(augmented.mean(axis=(1, 2, 3)), 6))) == 8
+
+
+def test_adding_gamma_leaves_the_other_operations_draws_unchanged():
+    # A gamma that is never applied must give what a config without gamma gives, bit for bit:
+    # the runs trained before gamma existed stay reproducible.
+    images = np.stack([image()] * 4)
+    without = augment_batch(PhotometricConfig(**ALWAYS), images, seed=3)
+    never_applied = augment_batch(PhotometricConfig(**ALWAYS, gamma=1.0, p_gamma=0.0), images, seed=3)
+    np.testing.assert_array_equal(never_applied, without)
+    applied = augment_batch(PhotometricConfig(**ALWAYS, gamma=1.0, p_gamma=1.0), images, seed=3)
+    assert np.abs(applied - without).mean() > 1e-3
+
+
 def test_gaussian_blur_matches_cv2():
     source = image()
     for sigma in (0.5, 1.3):
@@ -63,4 +86,6 @@ def test_config_rejects_out_of_range_values():
         PhotometricConfig(contrast=1.5)
     with pytest.raises(ValueError, match="p_noise"):
         PhotometricConfig(p_noise=2.0)
+    with pytest.raises(ValueError, match="gamma"):
+        PhotometricConfig(gamma=-0.5)
     assert PhotometricConfig(blur_sigma=1.0).blur_radius == 3 and PhotometricConfig(**ZERO).blur_radius == 0

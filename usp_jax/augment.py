@@ -26,20 +26,27 @@ class PhotometricConfig:
     are augmented independently, so their photometric gap is about twice one draw.
 
     Attributes:
+      gamma: image raised to the power 2 ** g, g ~ U(-gamma, gamma): a camera's response curve or a
+        changed exposure, which brightens or darkens the shadows more than the highlights (the
+        other operations are linear); >= 0, 0 is off (the default, so configs written before it
+        draw exactly what they drew then).
       brightness: image multiplied by b ~ U(1 - brightness, 1 + brightness); in [0, 1].
       contrast: image blended with its mean grey level, factor c ~ U(1 - contrast, 1 + contrast); in [0, 1].
       saturation: image blended with its grey image, factor s ~ U(1 - saturation, 1 + saturation); in [0, 1].
       noise_std: additive Gaussian noise with standard deviation ~ U(0, noise_std) (image in [0, 1]).
       blur_sigma: Gaussian blur with sigma ~ U(0, blur_sigma) pixels; the separable kernel has the fixed
         radius ceil(3 * blur_sigma) so that shapes do not depend on the draw.
-      p_brightness, p_contrast, p_saturation, p_noise, p_blur: probability of applying each operation.
+      p_gamma, p_brightness, p_contrast, p_saturation, p_noise, p_blur: probability of applying each
+        operation.
     """
 
+    gamma: float = 0.0
     brightness: float = 0.3
     contrast: float = 0.3
     saturation: float = 0.2
     noise_std: float = 0.03
     blur_sigma: float = 1.0
+    p_gamma: float = 0.5
     p_brightness: float = 0.5
     p_contrast: float = 0.5
     p_saturation: float = 0.5
@@ -50,10 +57,10 @@ class PhotometricConfig:
         for name in ("brightness", "contrast", "saturation"):
             if not 0.0 <= getattr(self, name) <= 1.0:
                 raise ValueError(f"PhotometricConfig.{name}={getattr(self, name)!r} must lie in [0, 1]")
-        for name in ("noise_std", "blur_sigma"):
+        for name in ("gamma", "noise_std", "blur_sigma"):
             if getattr(self, name) < 0.0:
                 raise ValueError(f"PhotometricConfig.{name}={getattr(self, name)!r} must be >= 0")
-        for name in ("p_brightness", "p_contrast", "p_saturation", "p_noise", "p_blur"):
+        for name in ("p_gamma", "p_brightness", "p_contrast", "p_saturation", "p_noise", "p_blur"):
             if not 0.0 <= getattr(self, name) <= 1.0:
                 raise ValueError(f"PhotometricConfig.{name}={getattr(self, name)!r} is not a probability")
 
@@ -83,10 +90,11 @@ def gaussian_blur(image: jax.Array, sigma: jax.Array, radius: int) -> jax.Array:
 
 def photometric_augment(key: jax.Array, image: jax.Array,
                         config: PhotometricConfig = PhotometricConfig()) -> jax.Array:
-    """Random brightness, contrast, saturation, blur and noise, in that order, then clipping to [0, 1].
+    """Random gamma, brightness, contrast, saturation, blur and noise, in that order, then clipping to [0, 1].
 
-    Colour changes come first and sensor noise last, the order in which they arise in a camera; the
-    single clip at the end keeps the colour blends exact (a neutral factor leaves the image bit-identical).
+    The response curve and colour changes come first and sensor noise last, the order in which they
+    arise in a camera; the single clip at the end keeps the colour blends exact (a neutral factor leaves
+    the image bit-identical).
 
     Args:
       key: PRNG key.
@@ -113,6 +121,14 @@ def photometric_augment(key: jax.Array, image: jax.Array,
     noise_std = draw(0.0, config.noise_std, config.p_noise, 0.0)
     luma = jnp.array(_LUMA, jnp.float32)
 
+    if config.gamma > 0:
+        # A key of its own rather than a seventh split of `key`: configs without gamma keep the
+        # random stream, hence the crops' augmentations, of the runs trained before it existed.
+        key_gamma = jax.random.fold_in(key, 7)
+        exponent = jax.random.uniform(key_gamma, minval=-config.gamma, maxval=config.gamma)
+        applied = jax.random.uniform(jax.random.fold_in(key_gamma, 1)) < config.p_gamma
+        # Gamma needs a non-negative base; inputs are promised in [0, 1], clip guards the rest.
+        image = jnp.where(applied, jnp.clip(image, 0.0, 1.0) ** (2.0**exponent), image)
     image = image * brightness
     # Blends as x * f + reference * (1 - f) rather than (x - reference) * f + reference: exact for f = 1.
     image = image * contrast + (image @ luma).mean() * (1 - contrast)
