@@ -165,9 +165,10 @@ def test_speed_table_puts_the_papers_fps_beside_ours_per_batch():
 
 LATER_STAGES = ["cpu_photos_stage2", "cpu_photos_stage3", "cpu_photos_stage4",
                 "cpu_photos_stage5", "cpu_photos_stage6", "cpu_photos_stage7",
-                "cpu_photos_stage8", "cpu_photos_stage9"]
+                "cpu_photos_stage8", "cpu_photos_stage9", "cpu_photos_stage10"]
 # The 240x320 stages that keep the 128x160 stages' range of content scales (stage 9 widens it).
-PAPER_SIZE_STAGES = ["cpu_photos_stage6", "cpu_photos_stage7", "cpu_photos_stage8"]
+PAPER_SIZE_STAGES = ["cpu_photos_stage6", "cpu_photos_stage7", "cpu_photos_stage8",
+                     "cpu_photos_stage10"]
 
 
 @pytest.mark.parametrize("later", LATER_STAGES)
@@ -227,6 +228,24 @@ def test_the_scale_stage_adds_twice_as_zoomed_in_crops_and_changes_nothing_else(
     assert dataclasses.replace(stage9.data, scale_range=stage7.data.scale_range) == stage7.data
     assert (stage9.model, stage9.loss, stage9.homography, stage9.photometric) == (
         stage7.model, stage7.loss, stage7.homography, stage7.photometric)
+
+
+def test_the_lighting_stage_adds_gamma_and_wider_intensity_changes_and_changes_nothing_else():
+    import dataclasses
+
+    from usp_jax import config as config_lib
+
+    stage7 = config_lib.load(str(EXPERIMENTS / "cpu_photos_stage7.py"))
+    stage10 = config_lib.load(str(EXPERIMENTS / "cpu_photos_stage10.py"))
+    # Every stage before trained on the default: linear changes of up to 30 %, no gamma.
+    assert stage7.photometric == config_lib.paper().photometric
+    assert (stage7.photometric.gamma, stage7.photometric.brightness) == (0.0, 0.3)
+    assert (stage10.photometric.gamma, stage10.photometric.brightness,
+            stage10.photometric.contrast) == (0.5, 0.5, 0.5)
+    assert dataclasses.replace(stage10.photometric, gamma=0.0, brightness=0.3,
+                               contrast=0.3) == stage7.photometric
+    assert (stage10.model, stage10.loss, stage10.homography, stage10.data) == (
+        stage7.model, stage7.loss, stage7.homography, stage7.data)
 
 
 def test_each_stage_has_its_own_seed_so_it_sees_other_crops_and_homographies():
@@ -324,9 +343,12 @@ def test_inlier_residuals_measure_the_ransac_inliers_against_the_true_homography
         inliers=np.array([True, True, True, False]),
         homography=shift,
     )
-    row = residuals.inlier_residuals(points, second, matching, shift)
+    row = residuals.inlier_residuals(points, second, matching, shift, (100, 200))
     assert row["inliers"] == 3
     assert row["rms"] == pytest.approx(np.sqrt(9 / 3))
     assert row["over_2px"] == pytest.approx(1 / 3)
+    # The three inliers' triangle (shoelace): |40 * 50 - 20 * 10| / 2 = 900 px of 100 x 200.
+    assert row["coverage"] == pytest.approx(900 / 20000)
     none = evaluation.Matching(np.zeros((0, 2), np.int64), np.zeros(0, bool), None)
-    assert np.isnan(residuals.inlier_residuals(points, second, none, shift)["rms"])
+    empty = residuals.inlier_residuals(points, second, none, shift, (100, 200))
+    assert np.isnan(empty["rms"]) and empty["coverage"] == 0
