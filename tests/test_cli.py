@@ -135,6 +135,7 @@ def test_detection_on_a_smaller_copy_returns_keypoints_in_the_originals_pixels(m
         (["train", "--data", "sample", "--workdir", "{tmp}/w", "batch_size=five"], "batch_size"),
         (["evaluate", "--hpatches", "{tmp}/nothing", "--baselines-only"], "nothing"),
         (["detect", "{tmp}/absent.png", "--checkpoint", "{tmp}/none"], "none"),
+        (["evaluate", "--hpatches", "{tmp}", "--checkpoint", "{tmp}/gone.npz"], "gone.npz"),
         (["detect", "{tmp}/absent.png", "--nms", "-1"], "nms_radius"),
         (["match", "{tmp}/absent.png", "{tmp}/other.png"], "absent.png"),
         (["make-pairs", "--images", "{tmp}/void", "--out", "{tmp}/o"], "void"),
@@ -160,6 +161,14 @@ def test_export_writes_weights_and_an_artifact_that_load_without_the_model(workd
     expected = inference.Detector.from_checkpoint(workdir).detect(image, top_n=10)
     (exported,) = inference.load_exported(artifact)(image[None])
     np.testing.assert_allclose(exported.keypoints, expected.keypoints, atol=1e-3)
+    # The exported weights file is itself a --checkpoint.
+    image_file, out = tmp_path / "a.png", tmp_path / "k.json"
+    cv2.imwrite(str(image_file), cv2.cvtColor(image, cv2.COLOR_RGB2BGR))
+    assert main(["detect", str(image_file), "--checkpoint", str(weights), "--top", "10",
+                 "--json", str(out)]) == 0
+    from_file = inference.Detector(variables, config).detect(image, top_n=10)
+    np.testing.assert_allclose(json.loads(out.read_text())["keypoints"], from_file.keypoints,
+                               atol=1e-5)
 
 
 def test_train_overrides_may_sit_between_options_in_the_order_given():

@@ -270,6 +270,24 @@ def test_pretrained_loads_shipped_weights_or_says_how_to_train(
     assert len(pretrained.detect(image).scores) == 4
 
 
+def test_load_takes_a_weights_file_a_training_workdir_or_nothing_for_the_shipped_weights(
+    variables, detector, image, tmp_path, monkeypatch
+):
+    weights = tmp_path / "exported.npz"
+    inference.save_weights(weights, variables, SMALL)
+    monkeypatch.setattr(inference, "PRETRAINED_WEIGHTS", weights)
+    from_file = Detector.load(weights, top_n=5)
+    assert from_file.model_config == SMALL and from_file.top_n == 5
+    _, stored = inference.load_weights(weights)
+    assert_same_features(from_file.detect(image), Detector(stored, SMALL).detect(image, top_n=5))
+    np.testing.assert_array_equal(Detector.load().detect(image, top_n=5).keypoints,
+                                  from_file.detect(image).keypoints)
+    with pytest.raises(FileNotFoundError, match="absent.npz"):
+        Detector.load(tmp_path / "absent.npz")
+    with pytest.raises(FileNotFoundError):
+        Detector.load(tmp_path / "no-workdir")
+
+
 def test_from_checkpoint_restores_the_trained_variables(variables, detector, image, tmp_path):
     state = {
         "params": variables["params"],

@@ -57,13 +57,17 @@ def _add_upsample(parser) -> None:
                              " paper's detector; 2: finer keypoints for 4x the compute)")
 
 
+def _add_checkpoint(parser) -> None:
+    parser.add_argument("--checkpoint", metavar="PATH",
+                        help="training workdir, one of its checkpoints, or a .npz weights file"
+                             " from `usp-jax export --weights` (default: the shipped weights)")
+
+
 def _load_detector(args, **options):
     from usp_jax.inference import Detector
 
     options.setdefault("upsample", getattr(args, "upsample", 1))
-    if getattr(args, "checkpoint", None):
-        return Detector.from_checkpoint(args.checkpoint, **options)
-    return Detector.pretrained(**options)
+    return Detector.load(getattr(args, "checkpoint", None) or None, **options)
 
 
 def cmd_train(args) -> None:
@@ -330,7 +334,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=cmd_train)
 
     p = sub.add_parser("evaluate", help="HPatches/Oxford metrics vs OpenCV baselines")
-    p.add_argument("--checkpoint", help="training workdir or checkpoint (default: shipped weights)")
+    _add_checkpoint(p)
     p.add_argument("--hpatches", required=True, help="HPatches- or Oxford-layout folder")
     p.add_argument("--res", type=_resolution, default=(240, 320), help="HxW (default 240x320)")
     p.add_argument("--top", type=_positive, default=300, help="points kept per image")
@@ -353,7 +357,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=cmd_make_pairs)
 
     p = sub.add_parser("benchmark", help="frames per second, model and OpenCV side by side")
-    p.add_argument("--checkpoint")
+    _add_checkpoint(p)
     p.add_argument("--res", type=_resolution, nargs="+", default=[(240, 320), (480, 640)])
     p.add_argument("--batch", type=_positive, nargs="+", default=[1, 10])
     p.add_argument("--top", type=_positive, help="points kept (default: 300 up to 240x320, else 1000)")
@@ -365,7 +369,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("detect", help="keypoints of one image")
     p.add_argument("image")
-    p.add_argument("--checkpoint")
+    _add_checkpoint(p)
     p.add_argument("--top", type=_positive, default=500)
     # Spread points condition a homography or pose better: radius 4 cut the corner error of
     # the held-out viewpoint pairs by a third (experiments/RESULTS.md).
@@ -382,7 +386,7 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("match", help="matches and a RANSAC homography between two images")
     p.add_argument("image1")
     p.add_argument("image2")
-    p.add_argument("--checkpoint")
+    _add_checkpoint(p)
     p.add_argument("--top", type=_positive, default=1000)
     p.add_argument("--nms", type=float, default=4.0,
                    help="NMS radius in px, default 4 (spread points condition a homography better)")
@@ -394,7 +398,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=cmd_match)
 
     p = sub.add_parser("export", help="float16 weights file or a jax.export inference artifact")
-    p.add_argument("--checkpoint", help="training workdir or checkpoint (default: shipped weights)")
+    _add_checkpoint(p)
     p.add_argument("--weights", help="write a float16 .npz (what Detector.pretrained() loads)")
     p.add_argument("--artifact", help="write a serialised jax.export detector")
     p.add_argument("--res", type=_resolution, default=(240, 320), help="artifact input HxW")

@@ -347,6 +347,22 @@ class Detector:
         return cls(variables, config.model, **options)
 
     @classmethod
+    def from_weights(cls, path: str | pathlib.Path, **options) -> Detector:
+        """From a float16 weights file (:func:`save_weights`, ``usp-jax export --weights``)."""
+        model_config, variables = load_weights(path)
+        return cls(variables, model_config, **options)
+
+    @classmethod
+    def load(cls, path: str | pathlib.Path | None = None, **options) -> Detector:
+        """The shipped weights (``path`` None), a ``.npz`` weights file, or a training workdir,
+        its ``checkpoints/`` or one step: what the CLI's ``--checkpoint PATH`` accepts."""
+        if path is None:
+            return cls.pretrained(**options)
+        if pathlib.Path(path).suffix == ".npz":
+            return cls.from_weights(path, **options)
+        return cls.from_checkpoint(path, **options)
+
+    @classmethod
     def pretrained(cls, **options) -> Detector:
         """The weights shipped in ``usp_jax/weights/unsuperpoint.npz``."""
         with importlib.resources.as_file(PRETRAINED_WEIGHTS) as path:
@@ -356,8 +372,7 @@ class Detector:
                     " model with `usp-jax train --workdir WORKDIR --data IMAGES` and load it with"
                     " Detector.from_checkpoint(WORKDIR) (`--checkpoint WORKDIR` in the CLI)"
                 )
-            model_config, variables = load_weights(path)
-        return cls(variables, model_config, **options)
+            return cls.from_weights(path, **options)
 
     def detect(self, image: np.ndarray, top_n: int | None = None) -> Features:
         """Keypoints of one uint8 [H, W, 3] RGB or [H, W] gray image, H, W >= 8.
