@@ -1,6 +1,7 @@
-"""Stage 1 of the shipped weights (continued by ``cpu_photos_stage2.py``, then
-``cpu_photos_stage3.py``): the paper's network, losses and batch on the offline photo corpus, at
-128x160 crops so a 2-core CPU gets through four times as many steps.
+"""Stage 1 of the shipped weights (continued by ``cpu_photos_stage2.py``, ``cpu_photos_stage3.py``,
+``cpu_photos_stage6.py``, ``cpu_photos_stage7.py`` and ``cpu_photos_stage10.py``): the paper's
+network, losses and batch on the offline photo corpus, at 128x160 crops so a 2-core CPU gets
+through four times as many steps.
 
 Build the corpus first (``experiments/build_corpus.py``), then::
 

@@ -1,4 +1,4 @@
-"""The last stage of the shipped weights, at the paper's own crop size: stage 3's weights
+"""The fourth stage of the shipped weights, at the paper's own crop size: stage 3's weights
 (``cpu_photos_stage3.py``) fine-tuned on 240x320 crops cut from 50-100% of a photo's extent.
 
 Stages 1-5 trained on 128x160 crops from 25-50% of the extent: the same pixel scale as the

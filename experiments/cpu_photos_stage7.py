@@ -14,7 +14,7 @@ on 2 CPU cores (0.42 steps/s). The training statistics stayed flat (d_k 1.51 px,
 per image over the first and the last 500 steps), but on the 160 held-out pairs, against stage 6
 (paired bootstrap, both float16 files, RESULTS.md): 240x320 LE +1.1%, HA@5 +4.2% and MS +0.8%
 beyond the pairs' noise, RS, HA@1 and HA@3 within it; 480x640 LE +0.9% and MS +1.0% beyond
-it, HA@1 +9.3% at its edge. Shipped.
+it, HA@1 +9.3% at its edge. Shipped until stage 10 (``cpu_photos_stage10.py``).
 """
 
 import pathlib

@@ -8,8 +8,8 @@ same way; this stage asks whether another annealed cycle keeps paying. From the 
         --workdir runs/corpus-cpu-stage8
     usp-jax export --checkpoint runs/corpus-cpu-stage8 --weights runs/stage8.npz
 
-(``runs/stage7.npz`` is stage 7's float16 export, ``cpu_photos_stage7.py``; it is the shipped
-``usp_jax/weights/unsuperpoint.npz``.) 1,800 steps, 63 min on 2 CPU cores (0.50 steps/s). Training
+(``runs/stage7.npz`` is stage 7's float16 export, ``cpu_photos_stage7.py``, then the shipped
+weights.) 1,800 steps, 63 min on 2 CPU cores (0.50 steps/s). Training
 d_k 1.53 -> 1.56 px and K 622 -> 636 pairs per image (means over the first 500 and last 500
 steps): flat. On the 160 held-out pairs at 240x320 / 300 (its float32 checkpoint against the
 shipped float16 stage 7): RS 0.826 (+0.0%), LE 0.698 px (+0.5% [0.1, 1.0]), MS 0.648 (+0.5%

@@ -14,8 +14,8 @@ and lifts the enlarged ones. From the repository root::
 
     usp-jax export --checkpoint runs/corpus-cpu-stage9 --weights runs/stage9.npz
 
-(``runs/stage7.npz`` is stage 7's float16 export, ``cpu_photos_stage7.py``; it is the shipped
-``usp_jax/weights/unsuperpoint.npz``.) 1,500 steps, 58 min on 2 CPU cores (0.43 steps/s).
+(``runs/stage7.npz`` is stage 7's float16 export, ``cpu_photos_stage7.py``, then the shipped
+weights.) 1,500 steps, 58 min on 2 CPU cores (0.43 steps/s).
 Training d_k 1.54 -> 1.51 px, K 627 -> 637 pairs per image (first and last 500 steps). On the
 160 held-out pairs at 240x320 / 300, its float16 export against stage 7's (RESULTS.md): LE
 +0.9 to +1.9% at upsample 1, 2 and 3 and at 480x640, HA@5 +2.6% at upsample 2, RS -0.1 to

@@ -213,8 +213,8 @@ def _detect_padded(
 
     ``upsample`` s > 1 runs the network on the images enlarged s times (bilinear, pixel centres
     aligned) and maps its keypoints back: the cells shrink to 8 / s input pixels, and positions
-    regressed to a roughly constant precision in the network's pixels come back finer (LE 0.70
-    -> 0.46 px at s = 2 on the held-out pairs; SIFT doubles its input for the same reason).
+    regressed to a roughly constant precision in the network's pixels come back finer (LE 0.69
+    -> 0.45 px at s = 2 on the held-out pairs; SIFT doubles its input for the same reason).
     """
     pixels = images.astype(jnp.float32) / 255.0
     if upsample > 1:
