@@ -1,15 +1,16 @@
-"""Two questions about evaluations written by ``usp-jax evaluate --json``: did a new model change
-anything beyond the choice of pairs, and at which viewpoint strength each method loses its
-homography accuracy.
+"""Three questions about evaluations written by ``usp-jax evaluate --json``: did a new model change
+anything beyond the choice of pairs, and at which viewpoint strength and which in-plane rotation
+each method loses its homography accuracy.
 
     python3 experiments/compare.py experiments/results/heldout_240x320.json \
-        --against experiments/results/stage5/heldout_240x320.json
+        --against experiments/results/stage5/heldout_240x320.json --rotation data/heldout-pairs
 
 prints, per view k of the viewpoint scenes (``usp-jax make-pairs`` draws view k = 2 ... 6 with
 growing rotation, scale and keystone), every method's HA at eps 1/3/5, median corner error, LE,
-RS and MS; and with ``--against``, the change of that file's UnsuperPoint against the first
-file's, in percent, with the 95% paired-bootstrap interval over the pairs that Table 1 uses
-(``experiments/table1.py``).
+RS and MS; with ``--rotation PAIRS`` the same per range of the pairs' in-plane rotation, read
+from their homographies; and with ``--against``, the change of that file's UnsuperPoint against
+the first file's, in percent, with the 95% paired-bootstrap interval over the pairs that Table 1
+uses (``experiments/table1.py``).
 """
 
 from __future__ import annotations
@@ -20,7 +21,10 @@ import json
 import math
 import pathlib
 
+import cv2
 import numpy as np
+
+from usp_jax import evaluation
 
 _spec = importlib.util.spec_from_file_location(
     "table1", pathlib.Path(__file__).with_name("table1.py")
@@ -37,18 +41,68 @@ def by_view(rows: list[dict]) -> dict[str, dict[int, dict[str, float]]]:
     The metrics are the means of the rows' own per-pair values, undefined (null) LE skipped, as
     ``evaluation.summarize`` takes them; a failed estimate's corner error is null in the JSON
     and counts as infinite in the median."""
-    grouped: dict[str, dict[int, list[dict]]] = {}
+    return _statistics(rows, lambda row: row["k"])
+
+
+# Edges (degrees) of the in-plane rotation ranges; a pair falls in the last range at or above its edge.
+ROTATION_EDGES = (0, 10, 20)
+
+
+def in_plane_rotation(homography: np.ndarray, shape: tuple[int, int]) -> float:
+    """In-plane rotation in degrees of a [3, 3] homography at the centre of an image of ``shape``
+    (H, W): the angle of the similarity closest to H's Jacobian there (its rotation part,
+    ``atan2(J10 - J01, J00 + J11)``), positive = clockwise on screen (x right, y down)."""
+    height, width = shape
+    centre = np.array([(width - 1) / 2, (height - 1) / 2, 1.0])
+    projected = homography @ centre
+    # d(p / w) / dx = (H[:2, :2] w - p H[2, :2]) / w**2 for the homogeneous image p = H @ (x, y, 1).
+    jacobian = (homography[:2, :2] * projected[2]
+                - np.outer(projected[:2], homography[2, :2])) / projected[2] ** 2
+    return math.degrees(math.atan2(jacobian[1, 0] - jacobian[0, 1], jacobian[0, 0] + jacobian[1, 1]))
+
+
+def _rotation_range(degrees: float) -> str:
+    edge = max(e for e in ROTATION_EDGES if abs(degrees) >= e)
+    following = [e for e in ROTATION_EDGES if e > edge]
+    return f"{edge}-{following[0]}" if following else f">={edge}"
+
+
+def by_rotation(rows: list[dict], pairs_root: str | pathlib.Path) -> dict[str, dict[str, dict]]:
+    """``{method: {rotation range: statistics}}`` over the viewpoint pairs of evaluation rows, the
+    ranges of :data:`ROTATION_EDGES` applied to :func:`in_plane_rotation` of each pair's
+    homography at image 1's centre (read from ``pairs_root``, the folder that was evaluated)."""
+    angles, sizes = {}, {}
+    for files in evaluation.scan_sequences(pairs_root):
+        if files.path1 not in sizes:
+            image = cv2.imread(str(files.path1), cv2.IMREAD_UNCHANGED)
+            if image is None:
+                raise ValueError(f"{files.path1}: OpenCV cannot read this image")
+            sizes[files.path1] = image.shape[:2]
+        angles[files.scene, files.index] = in_plane_rotation(files.homography, sizes[files.path1])
+    missing = {(r["scene"], r["k"]) for r in rows if r["split"] == "v"} - angles.keys()
+    if missing:
+        raise ValueError(f"{pairs_root} lacks {len(missing)} evaluated pairs, e.g. {min(missing)}")
+    order = {_rotation_range(e): i for i, e in enumerate(ROTATION_EDGES)}
+    table = _statistics(rows, lambda row: _rotation_range(angles[row["scene"], row["k"]]))
+    return {m: dict(sorted(ranges.items(), key=lambda item: order[item[0]]))
+            for m, ranges in table.items()}
+
+
+def _statistics(rows: list[dict], group_of) -> dict[str, dict]:
+    """Per method and per ``group_of(row)``, the viewpoint rows' mean metrics and median corner
+    error (see :func:`by_view`)."""
+    grouped: dict[str, dict] = {}
     for row in rows:
         if row["split"] == "v":
-            grouped.setdefault(row["method"], {}).setdefault(row["k"], []).append(row)
+            grouped.setdefault(row["method"], {}).setdefault(group_of(row), []).append(row)
     table = {}
-    for method, views in grouped.items():
+    for method, groups in grouped.items():
         table[method] = {}
-        for k, group in sorted(views.items()):
+        for key, group in sorted(groups.items()):
             values = table1.per_pair(group)[method]
             error = [math.inf if row["corner_error"] is None else row["corner_error"]
                      for row in group]
-            table[method][k] = {
+            table[method][key] = {
                 "pairs": len(group),
                 **{m: float(np.nanmean(v)) if np.isfinite(v).any() else math.nan
                    for m, v in values.items()},
@@ -76,8 +130,8 @@ def paired_change(base_rows: list[dict], new_rows: list[dict], rounds: int = 200
     return {m: (changes[m], intervals[m]) for m in table1.METRICS}
 
 
-def markdown_by_view(table: dict) -> str:
-    lines = ["| method | view k | pairs | HA e=1 | HA e=3 | HA e=5 | median corner error (px) "
+def markdown_by_view(table: dict, group: str = "view k") -> str:
+    lines = [f"| method | {group} | pairs | HA e=1 | HA e=3 | HA e=5 | median corner error (px) "
              "| LE | RS | MS |", "|" + "---|" * 10]
     for method, views in table.items():
         for k, s in views.items():
@@ -93,6 +147,9 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("results", help="JSON from usp-jax evaluate --json")
     parser.add_argument("--against", help="a second evaluation of the same pairs (a new model)")
+    parser.add_argument("--rotation", metavar="PAIRS",
+                        help="also break the viewpoint pairs down by in-plane rotation, reading "
+                             "their homographies from PAIRS, the evaluated folder")
     parser.add_argument("--rounds", type=int, default=2000, help="bootstrap resamples")
     args = parser.parse_args()
     try:
@@ -101,6 +158,12 @@ def main() -> None:
     except (OSError, ValueError, KeyError) as error:
         parser.error(f"cannot read the evaluation JSON: {error}")
     print(markdown_by_view(by_view(rows)))
+    if args.rotation:
+        try:
+            rotation_table = by_rotation(rows, args.rotation)
+        except (OSError, ValueError) as error:
+            parser.error(f"--rotation {args.rotation}: {error}")
+        print("\n" + markdown_by_view(rotation_table, group="rotation (deg)"))
     if new_rows is not None:
         try:
             changes = paired_change(rows, new_rows, args.rounds)

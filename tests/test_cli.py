@@ -78,7 +78,7 @@ def test_train_resumes_and_the_checkpoint_detects_and_evaluates(workdir, pairs_d
     assert list((tmp_path / "plots").glob("*_matches.png"))
     assert main(["evaluate", "--hpatches", str(pairs_dir), "--checkpoint", str(workdir),
                  "--baselines", "", "--upsample", "2", "--no-progress"]) == 0
-    assert "model on 2x upsampled images" in capsys.readouterr().out
+    assert "model on 2x enlarged images" in capsys.readouterr().out
 
 
 def test_match_recovers_a_known_homography_between_a_photo_and_its_warp(photo, tmp_path,

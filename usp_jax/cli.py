@@ -113,8 +113,8 @@ def cmd_evaluate(args) -> None:
         methods, args.hpatches, height=height, width=width, top_k=args.top, nms=args.nms,
         progress=not args.no_progress,
     )
-    upsampled = f", model on {args.upsample}x upsampled images" if args.upsample > 1 else ""
-    print(f"{args.hpatches} at {height}x{width}, top {args.top} points, NMS {args.nms}{upsampled}")
+    enlarged = f", model on {args.upsample}x enlarged images" if args.upsample > 1 else ""
+    print(f"{args.hpatches} at {height}x{width}, top {args.top} points, NMS {args.nms}{enlarged}")
     print(evaluation.format_table(results))
     if args.json:
         pathlib.Path(args.json).write_text(json.dumps(evaluation.to_json(results), indent=1))
