@@ -21,7 +21,6 @@ import json
 import math
 import pathlib
 
-import cv2
 import numpy as np
 
 from usp_jax import evaluation
@@ -61,8 +60,12 @@ def in_plane_rotation(homography: np.ndarray, shape: tuple[int, int]) -> float:
     return math.degrees(math.atan2(jacobian[1, 0] - jacobian[0, 1], jacobian[0, 0] + jacobian[1, 1]))
 
 
-def _rotation_range(degrees: float) -> str:
-    edge = max(e for e in ROTATION_EDGES if abs(degrees) >= e)
+def _rotation_edge(degrees: float) -> int:
+    """The edge of :data:`ROTATION_EDGES` that opens the range ``|degrees|`` falls in."""
+    return max(e for e in ROTATION_EDGES if abs(degrees) >= e)
+
+
+def _range_label(edge: int) -> str:
     following = [e for e in ROTATION_EDGES if e > edge]
     return f"{edge}-{following[0]}" if following else f">={edge}"
 
@@ -74,18 +77,14 @@ def by_rotation(rows: list[dict], pairs_root: str | pathlib.Path) -> dict[str, d
     angles, sizes = {}, {}
     for files in evaluation.scan_sequences(pairs_root):
         if files.path1 not in sizes:
-            image = cv2.imread(str(files.path1), cv2.IMREAD_UNCHANGED)
-            if image is None:
-                raise ValueError(f"{files.path1}: OpenCV cannot read this image")
-            sizes[files.path1] = image.shape[:2]
+            sizes[files.path1] = evaluation.read_image(files.path1).shape[:2]
         angles[files.scene, files.index] = in_plane_rotation(files.homography, sizes[files.path1])
     missing = {(r["scene"], r["k"]) for r in rows if r["split"] == "v"} - angles.keys()
     if missing:
         raise ValueError(f"{pairs_root} lacks {len(missing)} evaluated pairs, e.g. {min(missing)}")
-    order = {_rotation_range(e): i for i, e in enumerate(ROTATION_EDGES)}
-    table = _statistics(rows, lambda row: _rotation_range(angles[row["scene"], row["k"]]))
-    return {m: dict(sorted(ranges.items(), key=lambda item: order[item[0]]))
-            for m, ranges in table.items()}
+    # Grouped by the ranges' numeric edges, so that they come out in order, then labelled.
+    table = _statistics(rows, lambda row: _rotation_edge(angles[row["scene"], row["k"]]))
+    return {m: {_range_label(edge): s for edge, s in ranges.items()} for m, ranges in table.items()}
 
 
 def _statistics(rows: list[dict], group_of) -> dict[str, dict]:
