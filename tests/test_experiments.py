@@ -398,23 +398,18 @@ def test_inlier_residuals_measure_the_ransac_inliers_against_the_true_homography
 def test_the_rotation_stage_trains_on_larger_rotations_and_changes_nothing_else():
     import dataclasses
 
-    import jax
-
     from usp_jax import config as config_lib
-    from usp_jax import geometry
 
-    compare = load("compare")
+    training_rotations = load("training_rotations")
     stage10 = config_lib.load(str(EXPERIMENTS / "cpu_photos_stage10.py"))
     stage11 = config_lib.load(str(EXPERIMENTS / "cpu_photos_stage11.py"))
     assert dataclasses.replace(stage11.homography, patch_ratio=0.85) == stage10.homography
     assert dataclasses.replace(stage11, seed=stage10.seed, homography=stage10.homography) == stage10
 
     def share_rotated_by_20_degrees(cfg):
-        keys = jax.random.split(jax.random.PRNGKey(0), 1000)
-        draws = jax.vmap(lambda k: geometry.sample_homography(k, 240, 320, cfg.homography))(keys)
-        angles = [compare.in_plane_rotation(np.asarray(h, np.float64), (240, 320)) for h in draws]
+        angles = training_rotations.rotations(cfg.homography, 240, 320, draws=1000)
         return np.mean(np.abs(angles) >= 20)
 
-    # Measured with 4,000 draws: 4.7 % before, 36 % with the smaller patch.
+    # Measured with 4,000 draws (training_rotations.py): 4.8 % before, 36 % with the smaller patch.
     assert share_rotated_by_20_degrees(stage10) < 0.08
     assert share_rotated_by_20_degrees(stage11) > 0.3

@@ -1,0 +1,61 @@
+"""How far the training homographies of experiment configs rotate the image: the in-plane rotation
+(``compare.in_plane_rotation``, at the image centre) of many draws of ``geometry.sample_homography``
+with each config's ranges and crop size.
+
+    python3 experiments/training_rotations.py experiments/cpu_photos_stage10.py \
+        experiments/cpu_photos_stage11.py
+
+A rotated patch must fit inside the image, so the accepted rotations depend on the patch ratio as
+much as on the angle range (``HomographyConfig``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib.util
+import pathlib
+
+import jax
+import numpy as np
+
+from usp_jax import config as config_lib
+from usp_jax import geometry
+
+_spec = importlib.util.spec_from_file_location(
+    "compare", pathlib.Path(__file__).with_name("compare.py")
+)
+compare = importlib.util.module_from_spec(_spec)
+_spec.loader.exec_module(compare)
+
+
+def rotations(homography: geometry.HomographyConfig, height: int, width: int, draws: int,
+              seed: int = 0) -> np.ndarray:
+    """In-plane rotations in degrees [draws] of random training homographies for a
+    [height, width] crop."""
+    keys = jax.random.split(jax.random.PRNGKey(seed), draws)
+    sample = jax.vmap(lambda key: geometry.sample_homography(key, height, width, homography))
+    return np.array([compare.in_plane_rotation(h, (height, width))
+                     for h in np.asarray(sample(keys), np.float64)])
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("configs", nargs="+", help="experiment config files (get_config())")
+    parser.add_argument("--draws", type=int, default=4000, help="homographies per config")
+    args = parser.parse_args()
+    if args.draws < 1:
+        parser.error("--draws must be >= 1")
+    for path in args.configs:
+        try:
+            cfg = config_lib.load(path)
+        except (OSError, ValueError, AttributeError) as error:
+            parser.error(f"cannot load {path}: {error}")
+        size = np.abs(rotations(cfg.homography, cfg.data.height, cfg.data.width, args.draws))
+        print(f"{path} ({cfg.data.height}x{cfg.data.width}, patch {cfg.homography.patch_ratio:g}, "
+              f"{args.draws} draws): |rotation| median {np.median(size):.1f} deg, 90th percentile "
+              f"{np.percentile(size, 90):.1f}; >= 20 deg {np.mean(size >= 20):.1%}, "
+              f">= 30 deg {np.mean(size >= 30):.1%}")
+
+
+if __name__ == "__main__":
+    main()
