@@ -9,6 +9,7 @@ from usp_jax.model import (
     ModelConfig,
     UnsuperPoint,
     bilinear_sample,
+    fast_config,
     init_variables,
     relative_to_pixels,
 )
@@ -114,3 +115,59 @@ def test_bfloat16_compute_keeps_float32_outputs():
     images = jax.random.uniform(jax.random.PRNGKey(4), (1, 16, 16, 3))
     pred = apply(ModelConfig(**{**SMALL.__dict__, "dtype": "bfloat16"}), images)
     assert pred.scores.dtype == jnp.float32 and pred.descriptors.dtype == jnp.float32
+
+
+SMALL_FAST = fast_config(backbone_channels=(4, 8, 8, 16), head_channels=8, descriptor_dim=8)
+
+
+@pytest.mark.parametrize("height, width", [(32, 48), (40, 56)])  # even and odd cell grids
+def test_fast_backbone_keeps_one_point_per_cell_and_the_paper_ranges(height, width):
+    images = jax.random.uniform(jax.random.PRNGKey(5), (2, height, width, 3))
+    pred = apply(SMALL_FAST, images)
+    m = (height // 8) * (width // 8)
+    assert pred.scores.shape == (2, m) and pred.descriptors.shape == (2, m, 8)
+    assert 0 <= pred.relative.min() and pred.relative.max() <= 1
+    np.testing.assert_allclose(np.linalg.norm(pred.descriptors, axis=-1), 1.0, rtol=1e-5)
+
+
+def test_fast_network_gradients_reach_every_parameter():
+    images = jax.random.uniform(jax.random.PRNGKey(6), (2, 32, 48, 3))
+    variables = init_variables(jax.random.PRNGKey(0), SMALL_FAST)
+    model = UnsuperPoint(SMALL_FAST)
+
+    @jax.jit
+    def grads(params):
+        def loss(params):
+            pred, _ = model.apply({**variables, "params": params}, images, train=True,
+                                  mutable=["batch_stats"])
+            # Distinct weights per output, so that no BatchNorm'd sum is constant.
+            weights = [jnp.linspace(-1.0, 2.0, leaf.size).reshape(leaf.shape) for leaf in pred]
+            return sum(jnp.sum(w * leaf) for w, leaf in zip(weights, pred))
+
+        return jax.grad(loss)(params)
+
+    flat = jax.tree_util.tree_leaves_with_path(grads(variables["params"]))
+    for path, grad in flat:
+        assert np.all(np.isfinite(grad)), path
+        assert np.any(grad != 0), f"no gradient reaches {jax.tree_util.keystr(path)}"
+    # The 1/16 context level, the full-resolution patch conv and the residual blocks all train.
+    names = " ".join(jax.tree_util.keystr(path) for path, _ in flat)
+    assert "backbone" in names and len(flat) > 30
+
+
+def test_fast_network_is_a_fraction_of_the_papers_parameters():
+    def count(config):
+        shapes = jax.eval_shape(init_variables, jax.random.PRNGKey(0), config)
+        return sum(np.prod(leaf.shape) for leaf in jax.tree.leaves(shapes["params"]))
+
+    assert count(fast_config()) < count(ModelConfig()) / 3
+
+
+@pytest.mark.parametrize("changes, message", [
+    ({"backbone": "resnet"}, "backbone must be one of vgg, fast"),
+    ({"backbone": "fast"}, "needs 4 entries"),
+    ({"backbone_channels": (8, 8, 8, 8)}, "needs 8 entries"),
+])
+def test_a_backbone_name_or_width_list_that_does_not_fit_is_a_clear_error(changes, message):
+    with pytest.raises(ValueError, match=message):
+        ModelConfig(**changes)

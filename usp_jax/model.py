@@ -30,10 +30,19 @@ _MEAN, _STD = 0.5, 0.225
 _XLA_CPU_OPTIONS = {"xla_cpu_experimental_ynn_fusion_type": "LIBRARY_FUSION_TYPE_REDUCE"}
 
 
+BACKBONES = ("vgg", "fast")
+
+
 @dataclasses.dataclass(frozen=True)
 class ModelConfig:
-    """Network shape. Defaults are the paper's (section 2)."""
+    """Network shape. Defaults are the paper's (section 2); :func:`fast_config` is the fast one."""
 
+    # "vgg": the paper's backbone, 4 pairs of 3x3 convs with a 2x2 max-pool after the first
+    # three pairs (13.6 GFLOP per 240x320 image). "fast": :class:`FastBackbone`, built from the
+    # components the paper's conclusion proposes (residual blocks, skips from higher-resolution
+    # features), with small channel counts at high resolution as in XFeat and ALIKE.
+    backbone: str = "vgg"
+    # vgg: the 8 convs' output channels; fast: one width per resolution 1, 1/2, 1/4, 1/8.
     backbone_channels: tuple[int, ...] = (32, 32, 64, 64, 128, 128, 256, 256)
     head_channels: int = 256
     descriptor_dim: int = 256
@@ -52,10 +61,23 @@ class ModelConfig:
     batch_norm_momentum: float = 0.9
 
     def __post_init__(self):
-        if len(self.backbone_channels) != 8:
+        if self.backbone not in BACKBONES:
+            raise ValueError(f"backbone must be one of {', '.join(BACKBONES)}, got {self.backbone!r}")
+        expected = {"vgg": (8, "4 pairs of convs"), "fast": (4, "one per resolution")}
+        count, meaning = expected[self.backbone]
+        if len(self.backbone_channels) != count:
             raise ValueError(
-                f"backbone_channels needs 8 entries (4 pairs of convs), got {self.backbone_channels}"
+                f"backbone_channels of the {self.backbone} backbone needs {count} entries"
+                f" ({meaning}), got {self.backbone_channels}"
             )
+
+
+def fast_config(**changes) -> ModelConfig:
+    """The fast network: :class:`FastBackbone` (8/24/48/96 channels), 64-channel heads and
+    128-d descriptors; about a sixth of the paper network's FLOPs (``benchmarks/``)."""
+    fields = dict(backbone="fast", backbone_channels=(8, 24, 48, 96), head_channels=64,
+                  descriptor_dim=128)
+    return ModelConfig(**{**fields, **changes})
 
 
 class Predictions(NamedTuple):
@@ -197,6 +219,60 @@ def _zero_mean_init(scale: float):
     return init
 
 
+def _conv_bn_act(x, channels, *, train, config, dtype, kernel=(3, 3), strides=1, padding="SAME",
+                 act=True):
+    """3x3 conv, BatchNorm and leaky ReLU: the block every layer of both backbones is made of."""
+    x = nn.Conv(channels, kernel, strides=strides, padding=padding, dtype=dtype)(x)
+    x = nn.BatchNorm(
+        use_running_average=not train, momentum=config.batch_norm_momentum, dtype=dtype
+    )(x)
+    return nn.leaky_relu(x, config.leaky_relu_slope) if act else x
+
+
+class FastBackbone(nn.Module):
+    """A backbone at about a sixth of the paper's FLOPs (its section 6 lists the components).
+
+    Widths c1, c2, c4, c8 = ``config.backbone_channels`` at resolutions 1, 1/2, 1/4, 1/8. As
+    in XFeat and ALIKE, the high resolutions get few channels (a 3x3 conv costs pixels x c_in x
+    c_out) and depth goes where pixels are few: one conv at 1/1 and 1/2, a conv and a residual
+    block at 1/4 and 1/8, and a residual block at 1/16 whose output is upsampled and added at
+    1/8 (XFeat's pyramid fusion), which widens the descriptors' receptive field for the cost of
+    a few convs on 300 pixels. Downsampling is the paper's 2x2 max-pool, not a strided conv, so
+    that every 1/8 feature stays centred on its cell (pixel 8c + 3.5, module docstring); a
+    stride-2 3x3 "SAME" conv shifts the grid by half an input pixel per level.
+
+    images [B, H, W, 3] (normalised) -> (full [B, H, W, c1], cells [B, H/8, W/8, c8],
+    context [B, H/8, W/8, c8]): the full-resolution features that the score and position heads
+    read through a patch conv (the paper's "skip connections from higher resolution"), the
+    cell features, and cell features with the 1/16 context added.
+    """
+
+    config: ModelConfig
+
+    @nn.compact
+    def __call__(self, x: jax.Array, train: bool) -> tuple[jax.Array, jax.Array, jax.Array]:
+        cfg = self.config
+        block = functools.partial(_conv_bn_act, train=train, config=cfg, dtype=jnp.dtype(cfg.dtype))
+
+        def residual(x):
+            y = block(block(x, x.shape[-1]), x.shape[-1], act=False)
+            return nn.leaky_relu(x + y, cfg.leaky_relu_slope)
+
+        c1, c2, c4, c8 = cfg.backbone_channels
+        full = block(x, c1)
+        x = block(max_pool_2x2(full), c2)
+        x = residual(block(max_pool_2x2(x), c4))
+        cells = residual(block(max_pool_2x2(x), c8))
+        batch, h, w, _ = cells.shape
+        if h % 2 or w % 2:
+            # An odd cell grid has no whole 1/16 level; read context from the 1/8 map alone.
+            return full, cells, cells
+        coarse = residual(block(max_pool_2x2(cells), c8))
+        # Half-pixel-centred bilinear: entry k of 1/16 sits between cells 2k and 2k + 1.
+        up = jax.image.resize(coarse, (batch, h, w, c8), "linear").astype(cells.dtype)
+        return full, cells, cells + up
+
+
 class UnsuperPoint(nn.Module):
     """Backbone + score, position and descriptor heads (paper Fig. 1, section 2).
 
@@ -214,22 +290,25 @@ class UnsuperPoint(nn.Module):
         batch, height, width, _ = images.shape
         check_image_size(height, width)
         dtype = jnp.dtype(cfg.dtype)
-
-        def conv_bn_act(x, channels):
-            x = nn.Conv(channels, (3, 3), dtype=dtype)(x)
-            x = nn.BatchNorm(
-                use_running_average=not train, momentum=cfg.batch_norm_momentum, dtype=dtype
-            )(x)
-            return nn.leaky_relu(x, cfg.leaky_relu_slope)
+        conv_bn_act = functools.partial(_conv_bn_act, train=train, config=cfg, dtype=dtype)
 
         x = ((images - _MEAN) / _STD).astype(dtype)
-        for i, channels in enumerate(cfg.backbone_channels):
-            x = conv_bn_act(x, channels)
-            if i in (1, 3, 5):
-                x = max_pool_2x2(x)
+        if cfg.backbone == "vgg":
+            for i, channels in enumerate(cfg.backbone_channels):
+                x = conv_bn_act(x, channels)
+                if i in (1, 3, 5):
+                    x = max_pool_2x2(x)
+            point_input = descriptor_input = x
+        else:
+            full, cells, descriptor_input = FastBackbone(cfg, name="backbone")(x, train)
+            # Each cell's own 8x8 full-resolution features, as one patch conv: the score and
+            # the position inside the cell read the pixels they localise.
+            patch = conv_bn_act(full, cfg.head_channels, kernel=(CELL, CELL), strides=CELL,
+                                padding="VALID")
+            point_input = jnp.concatenate([cells, patch], axis=-1)
 
-        def head(out_channels, name, init_scale=1.0):
-            hidden = conv_bn_act(x, cfg.head_channels)
+        def head(inputs, out_channels, name, init_scale=1.0):
+            hidden = conv_bn_act(inputs, cfg.head_channels)
             out = nn.Conv(
                 out_channels,
                 (3, 3),
@@ -242,9 +321,11 @@ class UnsuperPoint(nn.Module):
 
         cells_h, cells_w = height // CELL, width // CELL
         m = cells_h * cells_w
-        scores = nn.sigmoid(head(1, "score")).reshape(batch, m)
-        relative = nn.sigmoid(head(2, "position", cfg.position_init_scale)).reshape(batch, m, 2)
-        descriptor_map = head(cfg.descriptor_dim, "descriptor")
+        scores = nn.sigmoid(head(point_input, 1, "score")).reshape(batch, m)
+        relative = nn.sigmoid(
+            head(point_input, 2, "position", cfg.position_init_scale)
+        ).reshape(batch, m, 2)
+        descriptor_map = head(descriptor_input, cfg.descriptor_dim, "descriptor")
         keypoints = relative_to_pixels(relative, cells_h, cells_w)
         if cfg.interpolate_descriptors:
             descriptors = jax.vmap(bilinear_sample)(descriptor_map, keypoints)
