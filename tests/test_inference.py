@@ -10,25 +10,35 @@ import pytest
 from usp_jax import checkpoint, evaluation, inference
 from usp_jax.config import Config
 from usp_jax.inference import Detector
-from usp_jax.model import ModelConfig, UnsuperPoint, init_variables
+from usp_jax.model import ModelConfig, UnsuperPoint, fast_config, init_variables
 
 SMALL = ModelConfig(
     backbone_channels=(8, 8, 8, 8, 16, 16, 16, 16), head_channels=16, descriptor_dim=16
 )
+SMALL_FAST = fast_config(backbone_channels=(4, 8, 8, 16), head_channels=8, descriptor_dim=16)
 
 
-@pytest.fixture(scope="module")
-def variables(photo):
+def calibrated_variables(config, photo):
     """Random weights with BatchNorm statistics of one real batch, so that, as at the start of
     training, positions spread over their cells and scores over (0, 1); the untouched running
     statistics of a fresh init would put every point near its cell centre."""
     # Jitted, the initialisation is one compile that the persistent cache (conftest) keeps.
-    random = init_variables(jax.random.PRNGKey(0), SMALL)
+    random = init_variables(jax.random.PRNGKey(0), config)
     batch = np.stack([photo[:64, :64], photo[200:264, 200:264], photo[300:364, 100:164]])
-    calibrate = UnsuperPoint(dataclasses.replace(SMALL, batch_norm_momentum=0.0))
+    calibrate = UnsuperPoint(dataclasses.replace(config, batch_norm_momentum=0.0))
     apply = jax.jit(functools.partial(calibrate.apply, train=True, mutable=["batch_stats"]))
     _, stats = apply(random, batch / np.float32(255))
     return {"params": random["params"], "batch_stats": stats["batch_stats"]}
+
+
+@pytest.fixture(scope="module")
+def variables(photo):
+    return calibrated_variables(SMALL, photo)
+
+
+@pytest.fixture(scope="module")
+def fast_variables(photo):
+    return calibrated_variables(SMALL_FAST, photo)
 
 
 @pytest.fixture(scope="module")
@@ -257,25 +267,38 @@ def test_save_weights_refuses_values_float16_cannot_hold(variables, tmp_path):
         inference.save_weights(tmp_path / "w.npz", huge, SMALL)
 
 
-def test_pretrained_loads_shipped_weights_or_says_how_to_train(
-    variables, image, tmp_path, monkeypatch
+def test_pretrained_loads_shipped_weights_by_name_or_says_how_to_train(
+    variables, fast_variables, image, tmp_path, monkeypatch
 ):
-    path = tmp_path / "unsuperpoint.npz"
-    monkeypatch.setattr(inference, "PRETRAINED_WEIGHTS", path)
+    monkeypatch.setattr(inference, "WEIGHTS_DIR", tmp_path)
     with pytest.raises(FileNotFoundError, match="usp-jax train"):
         Detector.pretrained()
-    inference.save_weights(path, variables, SMALL)
+    inference.save_weights(tmp_path / "paper.npz", variables, SMALL)
+    inference.save_weights(tmp_path / "fast.npz", fast_variables, SMALL_FAST)
     pretrained = Detector.pretrained(top_n=4)
-    assert pretrained.model_config == SMALL
+    assert pretrained.model_config == SMALL  # the default is the paper network's
     assert len(pretrained.detect(image).scores) == 4
+    assert Detector.pretrained("paper").model_config == SMALL
+    assert Detector.pretrained("fast").model_config == SMALL_FAST
+    monkeypatch.setattr(inference, "DEFAULT_PRETRAINED", "fast")
+    assert Detector.pretrained().model_config == SMALL_FAST
+    with pytest.raises(ValueError, match="unknown weights 'vgg16'.*paper, fast"):
+        Detector.pretrained("vgg16")
+
+
+def test_every_named_weights_file_ships_with_the_package():
+    for name, file in inference.PRETRAINED.items():
+        assert (inference.WEIGHTS_DIR / file).is_file(), name
+    assert inference.DEFAULT_PRETRAINED in inference.PRETRAINED
 
 
 def test_load_takes_a_weights_file_a_training_workdir_or_nothing_for_the_shipped_weights(
     variables, detector, image, tmp_path, monkeypatch
 ):
-    weights = tmp_path / "exported.npz"
+    weights = tmp_path / "paper.npz"
     inference.save_weights(weights, variables, SMALL)
-    monkeypatch.setattr(inference, "PRETRAINED_WEIGHTS", weights)
+    monkeypatch.setattr(inference, "WEIGHTS_DIR", tmp_path)
+    monkeypatch.setattr(inference, "DEFAULT_PRETRAINED", "paper")
     from_file = Detector.load(weights, top_n=5)
     assert from_file.model_config == SMALL and from_file.top_n == 5
     _, stored = inference.load_weights(weights)
@@ -304,10 +327,13 @@ def test_from_checkpoint_restores_the_trained_variables(variables, detector, ima
     assert_same_features(restored.detect(image), detector.detect(image))
 
 
-@pytest.mark.parametrize("upsample", [1, 2])
-def test_exported_detector_runs_without_the_model(variables, image, tmp_path, upsample):
+@pytest.mark.parametrize("network, upsample", [("paper", 1), ("paper", 2), ("fast", 1)])
+def test_exported_detector_runs_without_the_model(
+    variables, fast_variables, image, tmp_path, network, upsample
+):
     path = tmp_path / "detector.jax"
-    source = Detector(variables, SMALL, top_n=6, nms_radius=10, upsample=upsample)
+    weights, config = {"paper": (variables, SMALL), "fast": (fast_variables, SMALL_FAST)}[network]
+    source = Detector(weights, config, top_n=6, nms_radius=10, upsample=upsample)
     inference.export(source, path, 37, 53)
     run = inference.load_exported(path)
     stack = np.stack([image[:37, :53], image[3:, 3:]])

@@ -19,7 +19,7 @@ from usp_jax.losses import (
     uniform_loss,
     usp_loss,
 )
-from usp_jax.model import ModelConfig, Predictions, UnsuperPoint, init_variables
+from usp_jax.model import ModelConfig, Predictions, UnsuperPoint, fast_config, init_variables
 
 __version__ = "0.1.0"
 
@@ -35,6 +35,7 @@ __all__ = [
     "compose_homographies",
     "decorrelation_loss",
     "descriptor_loss",
+    "fast_config",
     "find_correspondences",
     "init_variables",
     "invert_homography",

@@ -58,7 +58,7 @@ class Config:
     checkpoint_every: int = 2000
     keep_checkpoints: int = 3
     log_every: int = 50
-    # A weights file (``usp-jax export --weights``) to start from instead of a random init, to
+    # A weights file (``usp-jax export --save-weights``) to start from instead of a random init, to
     # fine-tune on new data; the optimiser starts fresh. "" = random init.
     init_weights: str = ""
 
@@ -83,10 +83,14 @@ PRESETS = {"paper": paper, "cpu": cpu}
 
 
 def load(spec: str) -> Config:
-    """A preset name (``paper``, ``cpu``) or a Python file defining ``get_config()``."""
+    """A preset name (``paper``, ``cpu``), a Python file defining ``get_config()``, or
+    ``FILE.py:NAME`` for another function of that file (a recipe's later stages)."""
     if spec in PRESETS:
         return PRESETS[spec]()
-    path = pathlib.Path(spec)
+    file, _, function = spec.partition(".py:")
+    file = file + ".py" if function else spec
+    function = function or "get_config"
+    path = pathlib.Path(file)
     if not path.is_file():
         raise FileNotFoundError(
             f"config {spec!r} is neither a preset ({', '.join(PRESETS)}) nor an existing file"
@@ -94,9 +98,9 @@ def load(spec: str) -> Config:
     module_spec = importlib.util.spec_from_file_location(path.stem, path)
     module = importlib.util.module_from_spec(module_spec)
     module_spec.loader.exec_module(module)
-    if not hasattr(module, "get_config"):
-        raise ValueError(f"config file {spec} defines no get_config()")
-    return module.get_config()
+    if not callable(getattr(module, function, None)):
+        raise ValueError(f"config file {file} defines no {function}()")
+    return getattr(module, function)()
 
 
 def _coerce(text: str, annotation: Any, where: str) -> Any:

@@ -35,8 +35,15 @@ from usp_jax import config as config_lib
 from usp_jax.evaluation import Features, Method
 from usp_jax.model import CELL, ModelConfig, UnsuperPoint, compiler_options
 
-#: Weights that ship inside the package (experiments/RESULTS.md says how they were trained).
-PRETRAINED_WEIGHTS = importlib.resources.files("usp_jax") / "weights" / "unsuperpoint.npz"
+#: Folder of the weights that ship inside the package (experiments/RESULTS.md says how each
+#: was trained).
+WEIGHTS_DIR = importlib.resources.files("usp_jax") / "weights"
+#: Shipped weights by name -> their file in WEIGHTS_DIR. "paper": the paper's VGG network;
+#: "fast": ``model.fast_config()``, 4.4x the images/s.
+PRETRAINED = {"paper": "paper.npz", "fast": "fast.npz"}
+#: What ``Detector.pretrained()`` loads: the better of the named weights on the held-out pairs
+#: (experiments/RESULTS.md, "Fast network").
+DEFAULT_PRETRAINED = "paper"
 
 # Key of the JSON ModelConfig inside a weights file; parameter keys are "params/..." paths.
 _CONFIG_KEY = "model_config"
@@ -348,14 +355,14 @@ class Detector:
 
     @classmethod
     def from_weights(cls, path: str | pathlib.Path, **options) -> Detector:
-        """From a float16 weights file (:func:`save_weights`, ``usp-jax export --weights``)."""
+        """From a float16 weights file (:func:`save_weights`, ``usp-jax export --save-weights``)."""
         model_config, variables = load_weights(path)
         return cls(variables, model_config, **options)
 
     @classmethod
     def load(cls, path: str | pathlib.Path | None = None, **options) -> Detector:
-        """The shipped weights (``path`` None), a ``.npz`` weights file, or a training workdir,
-        its ``checkpoints/`` or one step: what the CLI's ``--checkpoint PATH`` accepts."""
+        """The default shipped weights (``path`` None), a ``.npz`` weights file, or a training
+        workdir, its ``checkpoints/`` or one step: what the CLI's ``--checkpoint PATH`` accepts."""
         if path is None:
             return cls.pretrained(**options)
         if pathlib.Path(path).suffix == ".npz":
@@ -363,14 +370,21 @@ class Detector:
         return cls.from_checkpoint(path, **options)
 
     @classmethod
-    def pretrained(cls, **options) -> Detector:
-        """The weights shipped in ``usp_jax/weights/unsuperpoint.npz``."""
-        with importlib.resources.as_file(PRETRAINED_WEIGHTS) as path:
+    def pretrained(cls, name: str | None = None, **options) -> Detector:
+        """Weights shipped with the package, by name (``PRETRAINED``: "paper", "fast"); None
+        loads ``DEFAULT_PRETRAINED``, the better of them on the held-out pairs. Raises
+        ValueError listing the names for an unknown one."""
+        name = DEFAULT_PRETRAINED if name is None else name
+        if name not in PRETRAINED:
+            raise ValueError(
+                f"unknown weights {name!r}; the shipped weights are {', '.join(PRETRAINED)}"
+            )
+        with importlib.resources.as_file(WEIGHTS_DIR / PRETRAINED[name]) as path:
             if not path.is_file():
                 raise FileNotFoundError(
-                    f"no pretrained weights ship with usp-jax yet ({path} is missing); train a"
-                    " model with `usp-jax train --workdir WORKDIR --data IMAGES` and load it with"
-                    " Detector.from_checkpoint(WORKDIR) (`--checkpoint WORKDIR` in the CLI)"
+                    f"the {name!r} weights do not ship with this usp-jax ({path} is missing);"
+                    " train a model with `usp-jax train --workdir WORKDIR --data IMAGES` and load"
+                    " it with Detector.from_checkpoint(WORKDIR) (`--checkpoint WORKDIR` in the CLI)"
                 )
             return cls.from_weights(path, **options)
 
