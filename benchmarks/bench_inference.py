@@ -1,18 +1,22 @@
-"""Inference speed: the jitted network + top-N against the matmul ceiling and PyTorch.
+"""Inference speed, side by side in one run: both shipped networks, OpenCV and XFeat.
 
-For each batch size, on the same uint8 photo crops and in alternating blocks of calls: JAX
-(``UnsuperPoint.apply`` in eval mode and ``lax.top_k``, jitted with the library's compiler
-options), ``usp_jax.Detector.detect_batch`` (adds padding, NMS and the host round trip) and the
-PyTorch reference (``torch.inference_mode``, channels-last). GFLOP/s count the network's
-convolutions (13.6 GFLOP per 240x320 image); the ceiling is a 4096^2 float32 matmul measured in
-the same run.
+For each resolution and batch size, on the same uint8 photos and in alternating blocks of calls
+(``common.interleaved``):
 
-    python3 benchmarks/bench_inference.py                    # 240x320, batch 1 and 10
-    python3 benchmarks/bench_inference.py --size 480x640 --batch 1
-    python3 benchmarks/bench_inference.py --no-torch --upsample 2   # + Detector(upsample=2)
+* ``Detector`` with the "paper" and the "fast" weights (``Detector.detect_batch``: padding, the
+  network, top-N and descriptor interpolation in one compiled call, host round trip included);
+* OpenCV's ORB, AKAZE and SIFT, detect and describe (``cv2.Feature2D.detectAndCompute`` through
+  ``usp_jax.baselines``), one image after another as a video stream feeds them;
+* XFeat (``XFeat().detectAndCompute``) where it is importable: put a clone of
+  verlab/accelerated_features on ``PYTHONPATH`` (its weights ship in the repository) and install
+  torch; it runs with torch's default threads.
 
-With ``--upsample S`` a ``Detector(upsample=S)`` row joins the alternation; its GFLOP/s count
-the network on the S times larger image.
+Each network's FLOPs per image come from XLA's cost analysis of the compiled detector; its share
+of the ceiling is (FLOPs x images/s) / a 4096^2 float32 matmul's FLOP/s, measured in the same run.
+From the repository root::
+
+    python3 benchmarks/bench_inference.py                         # 240x320 and 480x640, batch 1 and 10
+    python3 benchmarks/bench_inference.py --size 240x320 --batch 1 --json out.json
 """
 
 from __future__ import annotations
@@ -20,112 +24,151 @@ from __future__ import annotations
 import argparse
 import json
 import statistics
-import time
 
+import cv2
 import jax
-import jax.numpy as jnp
 import numpy as np
 
 import common
-from usp_jax import config as config_lib
-from usp_jax import data
-from usp_jax.model import ModelConfig, UnsuperPoint, compiler_options, init_variables
+from usp_jax import baselines, benchmark
+from usp_jax.inference import Detector
+from usp_jax.model import fast_config, init_variables
+
+NETWORKS = ("paper", "fast")
+OPENCV = ("ORB", "AKAZE", "SIFT")
 
 
-def jax_detect(config: ModelConfig, top_n: int):
-    """jit(uint8 [B, H, W, 3] -> (scores, keypoints, descriptors) of the top_n points)."""
-    model = UnsuperPoint(config)
+def load_network(name: str, top_n: int) -> tuple[Detector, str]:
+    """The shipped weights, or random ones of the same network where they are not shipped
+    (speed does not depend on the weights' values)."""
+    try:
+        return Detector.pretrained(name, top_n=top_n), "shipped weights"
+    except FileNotFoundError:
+        config = fast_config()
+        return Detector(init_variables(jax.random.PRNGKey(0), config), config, top_n=top_n), (
+            "random weights"
+        )
 
-    def detect(variables, images):
-        pred = model.apply(variables, images.astype(jnp.float32) / 255.0)
-        scores, index = jax.lax.top_k(pred.scores, min(top_n, pred.scores.shape[1]))
 
-        def take(x):
-            return jnp.take_along_axis(x, index[:, :, None], axis=1)
+def detector_gflop(detector: Detector, images: np.ndarray) -> float:
+    """XLA's FLOP count of one compiled detector call, per image."""
+    sizes = np.tile(np.array(images.shape[1:3], np.int32), (len(images), 1))
+    compiled = detector._forward.lower(detector.variables, images, sizes,
+                                       top_n=detector.top_n).compile()
+    analysis = compiled.cost_analysis()
+    analysis = analysis[0] if isinstance(analysis, list) else analysis
+    return analysis["flops"] / 1e9 / len(images)
 
-        return scores, take(pred.keypoints), take(pred.descriptors)
 
-    return jax.jit(detect, compiler_options=compiler_options())
+def xfeat_runner(top_n: int):
+    """XFeat's detectAndCompute on one RGB image, or None where XFeat is not importable."""
+    try:
+        import torch
+        from modules.xfeat import XFeat  # verlab/accelerated_features
+    except ImportError:
+        return None
+    model = XFeat(top_k=top_n)
+
+    def run(image):
+        with torch.inference_mode():
+            return model.detectAndCompute(image, top_k=top_n)
+
+    return run
+
+
+def matching_ms(dims=(256, 128), points=(300, 1000), repeats=20) -> dict[str, float]:
+    """Milliseconds of the evaluation's mutual nearest-neighbour matching
+    (``cv2.BFMatcher(NORM_L2, crossCheck=True)``, as in ``evaluation.match_and_estimate``) of
+    two sets of N unit descriptors of each length: what a shorter descriptor saves per pair."""
+    rng = np.random.default_rng(0)
+    times = {}
+    for dim in dims:
+        for n in points:
+            a, b = (rng.normal(size=(n, dim)).astype(np.float32) for _ in range(2))
+            a /= np.linalg.norm(a, axis=1, keepdims=True)
+            b /= np.linalg.norm(b, axis=1, keepdims=True)
+            matcher = cv2.BFMatcher(cv2.NORM_L2, crossCheck=True)
+            runs = common.time_calls(lambda: matcher.match(a, b), repeats)
+            times[f"{dim}-d, {n} x {n}"] = 1e3 * statistics.median(runs)
+    return times
+
+
+def stream(method, frames):
+    """One image after another through a host detector (OpenCV, XFeat)."""
+    return lambda: [method(frame) for frame in frames]
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--size", default="240x320", help="HxW (default 240x320)")
+    parser.add_argument("--size", nargs="+", default=["240x320", "480x640"], help="HxW sizes")
     parser.add_argument("--batch", type=int, nargs="+", default=[1, 10])
-    parser.add_argument("--top", type=int, default=300, help="points kept per image")
     parser.add_argument("--rounds", type=int, default=3, help="alternations of the methods")
     parser.add_argument("--block", type=int, default=5, help="timed calls per round and method")
-    parser.add_argument("--no-torch", action="store_true")
-    parser.add_argument("--upsample", type=int, default=1,
-                        help="also time Detector(upsample=S) when S > 1")
     parser.add_argument("--json", help="also write the results to this file")
     args = parser.parse_args()
 
-    height, width = (int(v) for v in args.size.lower().split("x"))
-    config = ModelConfig()
-    variables = init_variables(jax.random.PRNGKey(0), config)
     print(common.environment())
     ceiling = common.matmul_ceiling()
-    gflop = common.forward_gflop(config, height, width)
-    print(f"{height}x{width}: {gflop:.1f} GFLOP per image; matmul ceiling {ceiling:.0f} GFLOP/s, "
-          f"so at most {ceiling / gflop:.1f} images/s")
-    detect = jax_detect(config, args.top)
-    from usp_jax.inference import Detector
-
-    detector = Detector(variables, config, top_n=args.top)
-    upsampled_name = f"Detector(upsample={args.upsample})"
-    if args.upsample > 1:
-        upsampled = Detector(variables, config, top_n=args.top, upsample=args.upsample)
-    if not args.no_torch:
-        import torch
-        import torch_reference
-
-        reference = torch_reference.TorchUnsuperPoint(config).to(
-            memory_format=torch.channels_last).eval()
-        torch_reference.load_flax_variables(reference, variables)
-
-    sample = config_lib.override(config_lib.paper(), [
-        "data.source=sample", f"data.height={height}", f"data.width={width}"]).data
-    results = {"height": height, "width": width, "matmul_gflops": ceiling, "rows": []}
-    # One batch of the largest size, sliced: make_dataset(..., 1, ...) overflows grain's length.
-    photos = np.asarray(data.make_dataset(sample, max(max(args.batch), 2), seed=0)[0])
-    for batch in args.batch:
-        images = photos[:batch]
-        device_images = jax.device_put(images)
-        start = time.perf_counter()
-        compiled = detect.lower(variables, device_images).compile()
-        compile_s = time.perf_counter() - start
-        runs = {"JAX jit(apply + top_k)": lambda: compiled(variables, device_images),
-                "usp_jax.Detector.detect_batch": lambda: detector.detect_batch(images)}
-        if args.upsample > 1:
-            runs[upsampled_name] = lambda: upsampled.detect_batch(images)
-        if not args.no_torch:
-            torch_images = torch.from_numpy(images)
-
-            def run_torch():
-                x = torch_images.permute(0, 3, 1, 2).float().div_(255).contiguous(
-                    memory_format=torch.channels_last)
-                return torch_reference.detect(reference, x, args.top)
-
-            runs["torch inference_mode"] = run_torch
-        for run in runs.values():  # compiles the Detector, creates the oneDNN primitives
-            jax.block_until_ready(run())
-        times = common.interleaved(runs, args.rounds, args.block)
-        for name, t in times.items():
-            results["rows"].append({"batch": batch, "method": name, "seconds": t,
-                                    "compile_s": compile_s})
+    photos = benchmark.sample_photos()
+    results = {"rows": [], "networks": {}}
+    for size in args.size:
+        height, width = (int(v) for v in size.lower().split("x"))
+        top_n = benchmark.protocol_top_n(height, width)
+        resized = [cv2.resize(p, (width, height), interpolation=cv2.INTER_AREA) for p in photos]
+        frames = np.stack([resized[i % len(resized)] for i in range(max(args.batch))])
+        networks = {name: load_network(name, top_n) for name in NETWORKS}
+        xfeat = xfeat_runner(top_n)
+        for batch in args.batch:
+            images = frames[:batch]
+            runs = {}
+            for name, (detector, _) in networks.items():
+                runs[f"UnsuperPoint {name}"] = lambda d=detector: d.detect_batch(images)
+            for name in OPENCV:
+                runs[name] = stream(baselines.opencv_method(name, top_n).detect, images)
+            if xfeat is not None:
+                runs["XFeat"] = stream(xfeat, images)
+            for run in runs.values():  # compiles the detectors
+                jax.block_until_ready(run())
+            for label, seconds in common.interleaved(runs, args.rounds, args.block).items():
+                results["rows"].append({"height": height, "width": width, "batch": batch,
+                                        "method": label, "seconds": seconds})
+        for name, (detector, weights) in networks.items():
+            results["networks"][f"{name} {size}"] = {
+                "gflop_per_image": detector_gflop(detector, frames[:1]),
+                "parameters": int(sum(x.size for x in jax.tree.leaves(detector.variables["params"]))),
+                "weights": weights,
+            }
+        if xfeat is None:
+            print("XFeat: not importable (clone verlab/accelerated_features onto PYTHONPATH)")
     ceiling = results["matmul_gflops"] = common.settled_ceiling(ceiling)
     print(f"matmul ceiling, the better of before and after the timings: {ceiling:.0f} GFLOP/s")
-    for batch in args.batch:
-        rows = [row for row in results["rows"] if row["batch"] == batch]
-        print(f"batch {batch} (JAX compile {rows[0]['compile_s']:.1f} s):")
-        for row in rows:
-            seconds = statistics.median(row["seconds"])
-            scale = args.upsample**2 if row["method"] == upsampled_name else 1
-            rate = batch * gflop * scale / seconds
-            print(f"  {row['method']:32s} {common.summary(row['seconds'])}  "
-                  f"{batch / seconds:6.2f} img/s  {rate:5.1f} GFLOP/s = {rate / ceiling:4.0%} of "
-                  "the ceiling")
+    for key, info in results["networks"].items():
+        print(f"  {key}: {info['gflop_per_image']:.2f} GFLOP per image (XLA),"
+              f" {info['parameters']:,} parameters, {info['weights']}")
+    for size in args.size:
+        height, width = (int(v) for v in size.lower().split("x"))
+        for batch in args.batch:
+            print(f"{size}, batch {batch}, top {benchmark.protocol_top_n(height, width)} points:")
+            rows = [r for r in results["rows"]
+                    if (r["height"], r["width"], r["batch"]) == (height, width, batch)]
+            paper_rate = None
+            for row in rows:
+                seconds = statistics.median(row["seconds"])
+                rate = batch / seconds
+                row["images_per_s"] = rate
+                line = f"  {row['method']:20s} {common.summary(row['seconds'])} {rate:7.1f} img/s"
+                network = row["method"].removeprefix("UnsuperPoint ")
+                if network in NETWORKS:
+                    gflop = results["networks"][f"{network} {size}"]["gflop_per_image"]
+                    paper_rate = rate if network == "paper" else paper_rate
+                    line += f"  {rate * gflop / ceiling:4.0%} of the matmul ceiling"
+                    if network != "paper" and paper_rate:
+                        line += f", {rate / paper_rate:.1f}x the paper network"
+                print(line)
+    results["matching_ms"] = matching_ms()
+    print("mutual nearest-neighbour matching per image pair (median):")
+    for key, ms in results["matching_ms"].items():
+        print(f"  {key}: {ms:.2f} ms")
     if args.json:
         with open(args.json, "w") as f:
             json.dump(results, f, indent=1)

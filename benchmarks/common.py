@@ -20,7 +20,7 @@ from typing import Callable
 import jax
 import jax.numpy as jnp
 
-from usp_jax.model import CELL, ModelConfig
+from usp_jax.model import ModelConfig, UnsuperPoint, init_variables
 
 
 def time_calls(fn: Callable[[], object], repeats: int, warmup: int = 1) -> list[float]:
@@ -75,32 +75,40 @@ def settled_ceiling(before: float) -> float:
     return max(before, matmul_ceiling())
 
 
-def conv_layers(config: ModelConfig, height: int, width: int) -> list[tuple[int, int, int, int]]:
-    """(output pixels, in channels, out channels) of each 3x3 conv, in forward order: the
-    backbone, then per head its hidden and its output conv."""
-    layers, channels, pixels = [], 3, height * width
-    for i, out in enumerate(config.backbone_channels):
-        layers.append((pixels, channels, out))
-        channels = out
-        if i in (1, 3, 5):
-            pixels //= 4
-    assert pixels == (height // CELL) * (width // CELL)
-    for out in (1, 2, config.descriptor_dim):
-        layers += [(pixels, channels, config.head_channels), (pixels, config.head_channels, out)]
-    return layers
+def _xla_gflop(function, *specs) -> float:
+    """GFLOP of one call of ``function`` on arrays of these shapes, from XLA's cost analysis of
+    the compiled program (what the hardware is asked to do, not a count by hand)."""
+    analysis = jax.jit(function).lower(*specs).compile().cost_analysis()
+    if isinstance(analysis, list):  # older jaxlibs: one dict per partition
+        analysis = analysis[0]
+    return analysis["flops"] / 1e9
+
+
+def _network_specs(config: ModelConfig, height: int, width: int):
+    variables = jax.eval_shape(init_variables, jax.random.PRNGKey(0), config)
+    return variables, jax.ShapeDtypeStruct((1, height, width, 3), jnp.float32)
 
 
 def forward_gflop(config: ModelConfig, height: int, width: int) -> float:
-    """Multiply-adds x 2 of the network's convolutions for one image (13.6 for the paper's)."""
-    return sum(2 * p * 9 * cin * cout for p, cin, cout in conv_layers(config, height, width)) / 1e9
+    """Forward GFLOP of the network for one image (13.3 for the paper's at 240x320)."""
+    model = UnsuperPoint(config)
+    return _xla_gflop(lambda v, x: model.apply(v, x), *_network_specs(config, height, width))
 
 
 def train_gflop(config: ModelConfig, height: int, width: int) -> float:
-    """Convolution GFLOP of forward + backward for one image: the backward has a data and a
-    weight gradient per conv, each as costly as the forward, except the data gradient of the
-    first conv (the input needs none)."""
-    first = conv_layers(config, height, width)[0]
-    return 3 * forward_gflop(config, height, width) - 2 * first[0] * 9 * first[1] * first[2] / 1e9
+    """Forward + backward GFLOP of the network for one image in training mode (BatchNorm on
+    batch statistics), gradients with respect to the parameters."""
+    model = UnsuperPoint(config)
+
+    def loss(variables, images):
+        def total(params):
+            pred, _ = model.apply({**variables, "params": params}, images, train=True,
+                                  mutable=["batch_stats"])
+            return sum(jnp.sum(leaf) for leaf in jax.tree.leaves(pred))
+
+        return jax.grad(total)(variables["params"])
+
+    return _xla_gflop(loss, *_network_specs(config, height, width))
 
 
 def environment() -> str:

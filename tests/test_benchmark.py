@@ -5,7 +5,7 @@ import pytest
 
 from usp_jax.benchmark import OPENCV_DETECTORS, benchmark, format_benchmark, protocol_top_n
 from usp_jax.inference import Detector
-from usp_jax.model import ModelConfig, init_variables
+from usp_jax.model import ModelConfig, fast_config, init_variables
 
 SMALL = ModelConfig(
     backbone_channels=(8, 8, 8, 8, 16, 16, 16, 16), head_channels=16, descriptor_dim=16
@@ -41,7 +41,7 @@ def test_benchmark_reports_every_method_resolution_and_batch(tiny_run):
         assert row["top_n"] == protocol_top_n(row["height"], row["width"]) == 300
     assert tiny_run["device"] == jax.devices()[0].device_kind
     assert tiny_run["jax_version"] == jax.__version__
-    assert tiny_run["model"]["descriptor_dim"] == 16
+    assert tiny_run["models"]["UnsuperPoint"]["descriptor_dim"] == 16
 
 
 def test_benchmark_result_is_json_serialisable(tiny_run):
@@ -65,6 +65,17 @@ def test_an_upsampled_detector_is_recorded_and_named_in_the_table(detector):
                        warmup=0, include_opencv=False)
     assert result["upsample"] == 2
     assert "UnsuperPoint on 2x enlarged images" in format_benchmark(result)
+
+
+def test_named_detectors_are_timed_side_by_side_in_one_table(detector):
+    fast_config_ = fast_config(backbone_channels=(4, 8, 8, 16), head_channels=8, descriptor_dim=8)
+    fast = Detector(init_variables(jax.random.PRNGKey(0), fast_config_), fast_config_)
+    result = benchmark({"paper": detector, "fast": fast}, resolutions=((32, 48),),
+                       batch_sizes=(1,), repeats=1, warmup=0, include_opencv=False)
+    assert [r["method"] for r in result["rows"]] == ["UnsuperPoint paper", "UnsuperPoint fast"]
+    assert result["models"]["UnsuperPoint fast"]["backbone"] == "fast"
+    labels = [line.split("|")[0].strip() for line in format_benchmark(result).splitlines()]
+    assert "UnsuperPoint paper, b1" in labels and "UnsuperPoint fast, b1" in labels
 
 
 def test_protocol_top_n_follows_the_evaluation_settings():

@@ -18,7 +18,7 @@ import os
 import platform
 import statistics
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 
 import cv2
 import jax
@@ -74,7 +74,7 @@ def _row(method, height, width, batch, top_n, first, median, platform_name) -> d
 
 
 def benchmark(
-    detector: Detector,
+    detector: Detector | Mapping[str, Detector],
     resolutions: Sequence[tuple[int, int]] = DEFAULT_RESOLUTIONS,
     batch_sizes: Sequence[int] = (1, 10),
     top_n: int | None = None,
@@ -84,7 +84,8 @@ def benchmark(
     images: Sequence[np.ndarray] | None = None,
 ) -> dict:
     """Frames per second of ``detector`` (and of OpenCV's ORB, SIFT, AKAZE, BRISK at batch 1)
-    on the same photos resized to each (height, width) of ``resolutions``.
+    on the same photos resized to each (height, width) of ``resolutions``. A mapping of names
+    to detectors times each of them (rows "UnsuperPoint NAME"), e.g. both shipped networks.
 
     ``top_n`` points are kept per image (None: :func:`protocol_top_n` of the resolution);
     ``images`` are uint8 RGB photos of any size (default :func:`sample_photos`), cycled to fill
@@ -100,6 +101,10 @@ def benchmark(
     photos = sample_photos() if images is None else list(images)
     if not photos:
         raise ValueError("benchmark needs at least one image")
+    detectors = (
+        {UNSUPERPOINT: detector} if isinstance(detector, Detector)
+        else {f"{UNSUPERPOINT} {name}": d for name, d in detector.items()}
+    )
     device = jax.devices()[0]
     rows = []
     for height, width in resolutions:
@@ -110,10 +115,11 @@ def benchmark(
         frames = np.stack([resized[i % len(resized)] for i in range(max(batch_sizes))])
         for batch in batch_sizes:
             stack = frames[:batch]
-            first, median = _timed(
-                lambda: detector.detect_batch(stack, top_n=n), repeats, warmup
-            )
-            rows.append(_row(UNSUPERPOINT, height, width, batch, n, first, median, device.platform))
+            for label, network in detectors.items():
+                first, median = _timed(
+                    lambda: network.detect_batch(stack, top_n=n), repeats, warmup
+                )
+                rows.append(_row(label, height, width, batch, n, first, median, device.platform))
         if include_opencv:
             for name in OPENCV_DETECTORS:
                 method = opencv_method(name, n)
@@ -127,9 +133,9 @@ def benchmark(
         "jax_version": jax.__version__,
         "opencv_version": cv2.__version__,
         "host": f"{platform.machine()}, {os.cpu_count()} cores",
-        "model": dataclasses.asdict(detector.model_config),
-        "nms_radius": detector.nms_radius,
-        "upsample": detector.upsample,
+        "models": {label: dataclasses.asdict(d.model_config) for label, d in detectors.items()},
+        "nms_radius": next(iter(detectors.values())).nms_radius,
+        "upsample": next(iter(detectors.values())).upsample,
         "repeats": repeats,
         "warmup": warmup,
         "rows": rows,
@@ -144,8 +150,8 @@ def format_benchmark(result: dict) -> str:
     labels, cells, compile_s = [], {}, {}
     for row in result["rows"]:
         label = row["method"]
-        if row["method"] == UNSUPERPOINT:
-            label = f"{UNSUPERPOINT}, b{row['batch']}"
+        if row["method"].startswith(UNSUPERPOINT):
+            label = f"{row['method']}, b{row['batch']}"
             compile_s[label, row["height"], row["width"]] = row["first_call_s"]
         if label not in labels:
             labels.append(label)
