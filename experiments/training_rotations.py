@@ -6,7 +6,8 @@ with each config's ranges and crop size.
         experiments/cpu_photos_stage11.py
 
 A rotated patch must fit inside the image, so the accepted rotations depend on the patch ratio as
-much as on the angle range (``HomographyConfig``).
+much as on the angle range (``HomographyConfig``); a config with ``data.context_window`` draws
+its patch inside a window around the crop instead, where any angle fits.
 """
 
 from __future__ import annotations
@@ -29,11 +30,16 @@ _spec.loader.exec_module(compare)
 
 
 def rotations(homography: geometry.HomographyConfig, height: int, width: int, draws: int,
-              seed: int = 0) -> np.ndarray:
+              seed: int = 0, window: tuple[int, int] | None = None) -> np.ndarray:
     """In-plane rotations in degrees [draws] of random training homographies for a
-    [height, width] crop."""
+    [height, width] crop; with ``window`` (a config's ``data.context_window``), those drawn for
+    branch B rendered from a context window of that (height, width) around the crop."""
     keys = jax.random.split(jax.random.PRNGKey(seed), draws)
-    sample = jax.vmap(lambda key: geometry.sample_homography(key, height, width, homography))
+    if window is None:
+        sample = jax.vmap(lambda key: geometry.sample_homography(key, height, width, homography))
+    else:
+        sample = jax.vmap(lambda key: geometry.sample_window_homography(key, height, width, window,
+                                                                        homography))
     return np.array([compare.in_plane_rotation(h, (height, width))
                      for h in np.asarray(sample(keys), np.float64)])
 
@@ -50,11 +56,13 @@ def main() -> None:
             cfg = config_lib.load(path)
         except (OSError, ValueError, AttributeError) as error:
             parser.error(f"cannot load {path}: {error}")
-        size = np.abs(rotations(cfg.homography, cfg.data.height, cfg.data.width, args.draws))
+        window = cfg.data.example_shape[:2] if cfg.data.context_window else None
+        size = np.abs(rotations(cfg.homography, cfg.data.height, cfg.data.width, args.draws,
+                                window=window))
         print(f"{path} ({cfg.data.height}x{cfg.data.width}, patch {cfg.homography.patch_ratio:g}, "
               f"{args.draws} draws): |rotation| median {np.median(size):.1f} deg, 90th percentile "
               f"{np.percentile(size, 90):.1f}; >= 20 deg {np.mean(size >= 20):.1%}, "
-              f">= 30 deg {np.mean(size >= 30):.1%}")
+              f">= 30 deg {np.mean(size >= 30):.1%}, >= 90 deg {np.mean(size >= 90):.1%}")
 
 
 if __name__ == "__main__":

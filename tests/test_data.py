@@ -1,5 +1,6 @@
 """Host input pipeline: sources, decoding, crops, determinism, sharding and bad input."""
 
+import dataclasses
 import logging
 import re
 
@@ -104,6 +105,54 @@ def test_random_crop_upscales_a_small_image():
         for left in range(30 - 27 + 1)
     ]
     assert any(np.array_equal(crop, c) for c in candidates)
+
+
+def _coordinate_photo(rows=200, cols=250):
+    """A photo whose red channel is its x and green its y coordinate (both < 256): resampling a
+    linear ramp keeps it linear, so a window's pixels tell which photo point they show."""
+    ys, xs = np.mgrid[0:rows, 0:cols]
+    return np.stack([xs, ys, np.full_like(xs, 100)], -1).astype(np.uint8)
+
+
+@pytest.mark.parametrize("scale_range", [(0.3, 0.6), (1.0, 1.0)])
+def test_context_crop_shows_the_photo_at_one_scale_around_a_crop_inside_it(scale_range):
+    photo = _coordinate_photo()
+    side = data.context_side(48, 64)
+    assert side == 80  # the crop's diagonal
+    for seed in range(3):
+        window = data.random_context_crop(np.random.default_rng(seed), photo, 48, 64, scale_range)
+        assert window.shape == (side, side, 4) and window.dtype == np.uint8
+        valid = window[..., 3] == 255
+        assert set(np.unique(window[..., 3])) <= {0, 255}
+        # The crop at the window's centre lies inside the photo.
+        assert valid[16:64, 8:72].all()
+        # Photo point = offset + step * window pixel, one step on both axes (no stretch).
+        v, u = np.nonzero(valid)
+        fit_x = np.polyfit(u, window[..., 0][valid].astype(float), 1)
+        fit_y = np.polyfit(v, window[..., 1][valid].astype(float), 1)
+        assert fit_x[0] == pytest.approx(fit_y[0], rel=0.02)
+        # Within rounding to uint8 and the shrink-then-warp resampling.
+        assert np.abs(np.polyval(fit_x, u) - window[..., 0][valid]).max() < 1.5
+        # Padding is black, and only where the window reaches past the photo.
+        assert (window[~valid] == 0).all()
+        x = np.polyval(fit_x, np.arange(side))[None, :]
+        y = np.polyval(fit_y, np.arange(side))[:, None]
+        beyond = (x < -1) | (x > 249 + 1) | (y < -1) | (y > 199 + 1)
+        well_inside = (x > 1) & (x < 249 - 1) & (y > 1) & (y < 199 - 1)
+        assert not valid[beyond].any() and valid[well_inside].all()
+        if scale_range == (1.0, 1.0):
+            # The crop spans the photo's height, so its square window must be padded.
+            assert not valid.all()
+        else:
+            assert valid.all()
+
+
+def test_context_window_batches_are_windows_and_switched_off_they_are_the_crops(tmp_path):
+    config = data.DataConfig(source=str(_photo_folder(tmp_path, shape=(120, 160))), **SMALL)
+    windows = dataclasses.replace(config, context_window=True)
+    assert config.example_shape == (48, 64, 3) and windows.example_shape == (80, 80, 4)
+    assert data.make_dataset(windows, 3, seed=0)[1].shape == (3, 80, 80, 4)
+    assert data.make_dataset(config, 3, seed=0)[1].shape == (3, 48, 64, 3)
 
 
 @pytest.mark.parametrize("policy, small_seen", [("upscale", True), ("skip", False)])

@@ -9,7 +9,8 @@ import numpy as np
 import pytest
 
 from usp_jax.geometry import (HomographyConfig, compose_homographies, invert_homography, points_inside,
-                              sample_homography, warp_image, warp_points)
+                              sample_homography, sample_window_homography, warp_image, warp_points,
+                              window_origin)
 
 HEIGHT, WIDTH = 48, 64
 CORNERS = np.float32([[0, 0], [WIDTH - 1, 0], [WIDTH - 1, HEIGHT - 1], [0, HEIGHT - 1]])
@@ -162,3 +163,71 @@ def test_homography_config_rejects_out_of_range_values():
         HomographyConfig(patch_ratio=1.5)
     with pytest.raises(ValueError, match="scaling"):
         HomographyConfig(scaling=1.0)
+
+
+# The context window of a 48x64 crop: its diagonal, 80 px (usp_jax.data.context_side).
+WINDOW = (80, 80)
+
+
+def rotation_at_centre(homography):
+    """In-plane rotation (degrees, OpenCV's sign: counter-clockwise content positive) of H's Jacobian
+    at the crop's centre."""
+    centre = np.array([(WIDTH - 1) / 2, (HEIGHT - 1) / 2])
+    step = 1e-2
+    points = np.array([[centre, centre + [step, 0], centre + [0, step]]], np.float64)
+    moved = cv2.perspectiveTransform(points, homography.astype(np.float64))[0]
+    jacobian = np.stack([moved[1] - moved[0], moved[2] - moved[0]], axis=1) / step
+    return -math.degrees(math.atan2(jacobian[1, 0] - jacobian[0, 1], jacobian[0, 0] + jacobian[1, 1]))
+
+
+@pytest.mark.parametrize("angle", [90.0, 180.0, -90.0, 30.0])
+def test_window_homography_turns_like_cv2_get_rotation_matrix_2d(angle):
+    pure_turn = HomographyConfig(patch_ratio=1.0, scaling=0.0, perspective=0.0, translation=0.0,
+                                 rotation_range=(angle, angle))
+    homography = sample_window_homography(jax.random.PRNGKey(0), HEIGHT, WIDTH, WINDOW, pure_turn)
+    expected = cv2.getRotationMatrix2D(((WIDTH - 1) / 2, (HEIGHT - 1) / 2), angle, 1.0)
+    np.testing.assert_allclose(homography, np.vstack([expected, [0, 0, 1]]), atol=1e-4)
+
+
+def test_window_homographies_turn_over_the_full_circle_and_keep_b_inside_the_window():
+    config = HomographyConfig(rotation_range=(-180.0, 180.0))
+    keys = jax.random.split(jax.random.PRNGKey(0), 400)
+    homographies = np.asarray(jax.jit(jax.vmap(
+        lambda key: sample_window_homography(key, HEIGHT, WIDTH, WINDOW, config)))(keys), np.float64)
+    angles = np.array([rotation_at_centre(h) for h in homographies])
+    # Uniform over the circle: each quarter holds about a quarter of the draws.
+    quarters = np.histogram(angles, bins=4, range=(-180, 180))[0] / len(angles)
+    assert quarters.min() > 0.2 and quarters.max() < 0.3
+    # Every pixel of B comes from inside the window (A's pixel coordinates shifted by its origin).
+    origin = np.array(window_origin(HEIGHT, WIDTH, WINDOW))
+    grid = np.stack(np.meshgrid(np.arange(WIDTH), np.arange(HEIGHT)), -1).reshape(1, -1, 2).astype(np.float64)
+    for homography in homographies:
+        source = cv2.perspectiveTransform(grid, np.linalg.inv(homography))[0] + origin
+        assert source.min() > -1e-3 and np.all(source.max(axis=0) < np.array(WINDOW[::-1]) - 1 + 1e-3)
+    # Keystone and scale still vary (not only the fallback's pure turn).
+    assert np.abs(homographies[:, 2, :2]).max() > 1e-4
+
+
+def test_window_homography_without_a_rotation_range_draws_max_angle():
+    config = HomographyConfig(max_angle=0.0, perspective=0.0)
+    homographies = jax.vmap(lambda key: sample_window_homography(key, HEIGHT, WIDTH, WINDOW, config))(
+        jax.random.split(jax.random.PRNGKey(1), 20))
+    assert np.abs([rotation_at_centre(np.asarray(h)) for h in homographies]).max() < 1e-3
+
+
+def test_only_the_window_sampler_draws_a_rotation_range():
+    with pytest.raises(ValueError, match="sample_window_homography"):
+        sample_homography(jax.random.PRNGKey(0), HEIGHT, WIDTH, HomographyConfig(rotation_range=(-90, 90)))
+    with pytest.raises(ValueError, match="cannot hold"):
+        window_origin(HEIGHT, WIDTH, (40, 80))
+
+
+@pytest.mark.parametrize("changes, message", [
+    (dict(rotation_range=(10.0, -10.0)), "low <= high"),
+    (dict(rotation_range=(0.0, 400.0)), "-360 <= low"),
+    (dict(rotation_range="wide"), "in degrees"),
+    (dict(rotation_distribution="normal"), "uniform"),
+])
+def test_homography_config_rejects_bad_rotation_settings(changes, message):
+    with pytest.raises(ValueError, match=message):
+        HomographyConfig(**changes)

@@ -10,7 +10,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from usp_jax import checkpoint, data, train
+from usp_jax import augment, checkpoint, data, geometry, train
 from usp_jax import config as config_lib
 from usp_jax.model import ModelConfig
 
@@ -273,3 +273,75 @@ def test_score_position_r2_is_one_for_a_ramp_and_small_for_content():
     expected = sum(np.corrcoef(mixed[0], grid[0, :, i])[0, 1] ** 2 for i in (0, 1))
     got = float(train.score_position_r2(jnp.asarray(mixed), jnp.asarray(grid)))
     assert got == pytest.approx(expected, rel=1e-4)
+
+
+# Identity photometric augmentation, so that branches can be compared with OpenCV pixel by pixel.
+NEUTRAL_LIGHT = augment.PhotometricConfig(brightness=0, contrast=0, saturation=0, noise_std=0,
+                                          blur_sigma=0)
+
+
+@pytest.mark.parametrize("angle", [90.0, 180.0])
+def test_window_branches_turn_b_by_the_sampled_homography_and_fill_it_from_the_whole_window(
+    photo, angle
+):
+    side = data.context_side(48, 64)
+    origin_x, origin_y = geometry.window_origin(48, 64, (side, side))
+    # A real photo with no black pixel (so that 0 means "masked"), its top 12 rows padding.
+    rgb = 0.1 + 0.9 * cv2.resize(photo, (side, side), interpolation=cv2.INTER_AREA) / 255.0
+    alpha = np.ones((side, side), np.float32)
+    alpha[:12] = 0
+    rgb = (rgb * alpha[..., None]).astype(np.float32)
+    windows = jnp.asarray(np.concatenate([rgb, alpha[..., None]], -1)[None])
+    pure_turn = geometry.HomographyConfig(patch_ratio=1.0, scaling=0.0, perspective=0.0,
+                                          translation=0.0, rotation_range=(angle, angle))
+    images_a, images_b, homographies, valid = (np.asarray(x)[0] for x in train.make_window_branches(
+        jax.random.PRNGKey(0), windows, 48, 64, pure_turn, NEUTRAL_LIGHT))
+
+    turn = np.vstack([cv2.getRotationMatrix2D((31.5, 23.5), angle, 1.0), [0, 0, 1]])
+    np.testing.assert_allclose(homographies, turn, atol=1e-4)
+    np.testing.assert_allclose(images_a, rgb[origin_y:origin_y + 48, origin_x:origin_x + 64], atol=1e-6)
+    # B is the whole window seen through T after the crop's offset, as OpenCV renders it; its pixels
+    # whose source is padding or outside the window are 0 and invalid.
+    from_window = turn @ np.array([[1, 0, -origin_x], [0, 1, -origin_y], [0, 0, 1]])
+    expected_valid = cv2.warpPerspective(alpha, from_window, (64, 48)) >= 1 - 1e-3
+    expected_b = cv2.warpPerspective(rgb, from_window, (64, 48)) * expected_valid[..., None]
+    np.testing.assert_array_equal(valid, expected_valid)
+    np.testing.assert_allclose(images_b, expected_b, atol=1e-4)
+    assert (images_b[valid] > 0.05).all() and (images_b[~valid] == 0).all()
+    # Valid pixels of B show real content from outside A too: what makes any angle possible.
+    ys, xs = np.mgrid[0:48, 0:64]
+    source = cv2.perspectiveTransform(np.stack([xs, ys], -1).reshape(1, -1, 2).astype(np.float64),
+                                      np.linalg.inv(turn))[0].reshape(48, 64, 2)
+    outside_a = (source < -0.5).any(-1) | (source[..., 0] > 63.5) | (source[..., 1] > 47.5)
+    if angle == 90.0:
+        assert (valid & outside_a).sum() >= 4 * 48 and (~valid).any()
+    else:
+        assert valid.all() and not outside_a.any()
+
+
+def test_upright_branches_draw_what_they_drew_before_the_context_window_existed():
+    homography = geometry.sample_homography(jax.random.PRNGKey(0), 48, 64)
+    np.testing.assert_allclose(homography, [[7.8681439e-01, 3.9201874e-01, -1.7099504e+01],
+                                            [-6.0852289e-01, 1.2928408e+00, 1.1539849e+01],
+                                            [-1.1136544e-02, 9.0182815e-03, 1.0]], rtol=1e-5, atol=1e-6)
+    images = jnp.asarray(np.random.default_rng(0).uniform(size=(2, 48, 64, 3)).astype(np.float32))
+    images_a, images_b, _ = train.make_branches(jax.random.PRNGKey(1), images,
+                                                geometry.HomographyConfig(), augment.PhotometricConfig())
+    assert float(images_a.sum()) == pytest.approx(10429.866, rel=1e-4)
+    assert float(images_b.sum()) == pytest.approx(8377.0986, rel=1e-4)
+
+
+def test_a_rotation_range_without_context_windows_stops_the_run_before_it_writes_the_workdir(tmp_path):
+    cfg = tiny_config(**{"homography.rotation_range": "(-180, 180)"})
+    with pytest.raises(ValueError, match="data.context_window=True"):
+        train.fit(cfg, tmp_path / "run", progress=False)
+    assert not (tmp_path / "run").exists()
+
+
+def test_a_run_on_context_windows_trains_and_logs_how_much_of_b_is_real(tmp_path):
+    cfg = tiny_config(num_steps=2, **{"data.context_window": True,
+                                      "homography.rotation_range": "(-180, 180)"})
+    train.fit(cfg, tmp_path, progress=False)
+    rows = train.read_metrics(tmp_path)
+    assert [r["step"] for r in rows] == [1, 2]
+    assert all(np.isfinite(r["loss"]) and 0.5 < r["data/valid_b"] <= 1.0 for r in rows)

@@ -28,6 +28,7 @@ import abc
 import dataclasses
 import importlib.util
 import logging
+import math
 import pathlib
 import threading
 import time
@@ -36,6 +37,8 @@ from typing import Iterator, Sequence
 import cv2
 import grain
 import numpy as np
+
+from usp_jax.geometry import window_origin
 
 log = logging.getLogger(__name__)
 
@@ -75,6 +78,13 @@ class DataConfig:
     "skip" replaces it by the next usable photo. Upscaling is the default because skipping
     changes which photos are trained on without the user asking: the ``sample`` source has two
     scans 172 and 191 px tall, and COCO a few hundred images under 240 px.
+
+    ``context_window``: deliver, per example, a square context window around the crop instead of
+    the crop (``random_context_crop``): side ``context_side(height, width)``, the crop's diagonal,
+    at the crop's pixel scale, with the crop at its centre and a fourth, validity channel. Training
+    then renders branch B from the whole window (``train.make_window_branches``), so the random
+    homography may rotate by any angle (``HomographyConfig.rotation_range``) and B still shows real
+    photo content. Off (the default), batches are the crops themselves, exactly as before.
     """
 
     source: str = "sample"
@@ -93,6 +103,7 @@ class DataConfig:
     # Where tfds: sources are prepared; "" means TFDS's default ($TFDS_DATA_DIR or
     # ~/tensorflow_datasets).
     tfds_data_dir: str = ""
+    context_window: bool = False
 
     def __post_init__(self):
         low, high = self.scale_range
@@ -102,6 +113,14 @@ class DataConfig:
             raise ValueError(f"small_images {self.small_images!r} must be 'upscale' or 'skip'")
         if self.height < 1 or self.width < 1:
             raise ValueError(f"crop size {self.height}x{self.width} must be positive")
+
+    @property
+    def example_shape(self) -> tuple[int, int, int]:
+        """Shape of one example of a batch: [height, width, 3], or [S, S, 4] with a context window."""
+        if self.context_window:
+            side = context_side(self.height, self.width)
+            return side, side, 4
+        return self.height, self.width, 3
 
 
 # ----------------------------------------------------------------------------------------------
@@ -305,6 +324,88 @@ def random_crop(
     return cv2.resize(window, (width, height), interpolation=interpolation)
 
 
+def context_side(height: int, width: int) -> int:
+    """Side of the square context window around a [height, width] crop: its diagonal, rounded up,
+    so that the crop turned by any angle about its centre stays inside the window."""
+    return math.ceil(math.hypot(height, width))
+
+
+def _window_offset(length: int, crop: int, side: int, origin: int, step: float,
+                   rng: np.random.Generator) -> float:
+    """Photo coordinate of the window's first pixel centre along one axis, uniform over the
+    positions that keep the crop inside the photo and, where the photo is long enough, the whole
+    window too (else the whole photo inside the window, which pads least). Window pixel i shows
+    photo coordinate offset + step * i; the crop covers window pixels [origin, origin + crop)."""
+    # Both ends of the range that keeps the whole window inside the photo; swapped when the photo is
+    # the shorter, they keep the whole photo inside the window instead.
+    low, high = sorted((0.0, length - 1 - step * (side - 1)))
+    low = max(low, -step * origin)
+    high = min(high, length - 1 - step * (origin + crop - 1))
+    return rng.uniform(low, max(low, high))
+
+
+def random_context_crop(
+    rng: np.random.Generator,
+    image: np.ndarray,
+    height: int,
+    width: int,
+    scale_range: tuple[float, float] = (0.5, 1.0),
+) -> np.ndarray:
+    """A random crop of ``image`` [H, W, 3] inside its context: uint8 [S, S, 4], S =
+    ``context_side(height, width)``, for rotation-robust training (paper section 3's T drawn from
+    the window, ``geometry.sample_window_homography``).
+
+    The scale is drawn as in ``random_crop`` (a window of the crop's aspect ratio whose side is a
+    fraction f ~ U(scale_range) of the largest that fits, f raised to keep it at least the output
+    size), but one scale serves both axes and the square around the crop is kept too, at the same
+    pixel scale. The crop, at ``geometry.window_origin(height, width, (S, S))``, lies inside the
+    photo; so does the whole window when the photo is large enough, else it is padded with zeros.
+    Channels 0-2 are RGB, channel 3 is 255 where the pixel shows the photo and 0 where it is padding
+    (whose RGB is 0).
+    """
+    rows, cols = image.shape[:2]
+    side = context_side(height, width)
+    origin_x, origin_y = window_origin(height, width, (side, side))
+    fit = min(rows / height, cols / width)
+    smallest = min(1 / fit, 1.0)
+    low, high = (max(s, smallest) for s in scale_range)
+    # Photo pixels per output pixel, the same on both axes so that a rotation is a rotation.
+    step = rng.uniform(low, high) * fit
+    # Pixel centres: window pixel (u, v) shows photo point (left + step * u, top + step * v).
+    top = _window_offset(rows, height, side, origin_y, step, rng)
+    left = _window_offset(cols, width, side, origin_x, step, rng)
+
+    # Shrink (with INTER_AREA, no aliasing) only the part of the photo the window shows, to about
+    # the output scale; the affine warp below then resamples it by a factor near 1.
+    y0 = max(0, math.floor(top) - 1)
+    y1 = min(rows, math.ceil(top + step * (side - 1)) + 2)
+    x0 = max(0, math.floor(left) - 1)
+    x1 = min(cols, math.ceil(left + step * (side - 1)) + 2)
+    region = image[y0:y1, x0:x1]
+    if step > 1:
+        shrunk_rows = max(1, round((y1 - y0) / step))
+        shrunk_cols = max(1, round((x1 - x0) / step))
+        region = cv2.resize(region, (shrunk_cols, shrunk_rows), interpolation=cv2.INTER_AREA)
+    scale_y, scale_x = (y1 - y0) / region.shape[0], (x1 - x0) / region.shape[1]
+    # Window pixel -> region pixel, with cv2.resize's pixel-centre mapping of the shrinking.
+    to_region = np.array([
+        [step / scale_x, 0.0, (left - x0 + 0.5) / scale_x - 0.5],
+        [0.0, step / scale_y, (top - y0 + 0.5) / scale_y - 0.5],
+    ])
+    # Replicating the border only fills the half region pixel at the photo's edge; pixels outside
+    # the photo are zeroed by the mask below.
+    rgb = cv2.warpAffine(region, to_region, (side, side), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
+                         borderMode=cv2.BORDER_REPLICATE)
+    along = np.arange(side) * step
+    inside_y = (top + along >= 0) & (top + along <= rows - 1)
+    inside_x = (left + along >= 0) & (left + along <= cols - 1)
+    valid = inside_y[:, None] & inside_x[None, :]
+    window = np.zeros((side, side, 4), np.uint8)
+    window[..., :3] = np.where(valid[..., None], rgb, 0)
+    window[..., 3] = 255 * valid
+    return window
+
+
 # ----------------------------------------------------------------------------------------------
 # Pipeline
 
@@ -340,7 +441,8 @@ class Pipeline:
     """What ``make_dataset`` returns: the batches and the record of skipped photos.
 
     ``pipeline[step]`` (or ``pipeline.batches[step]``) is this process's uint8
-    [batch_size, height, width, 3] share of global batch ``step``.
+    [batch_size, height, width, 3] share of global batch ``step`` ([batch_size, S, S, 4] context
+    windows with ``DataConfig.context_window``; see ``DataConfig.example_shape``).
     """
 
     batches: grain.MapDataset
@@ -383,6 +485,8 @@ def _usable_crop(
                 f"{config.height}x{config.width} crop (small_images='skip')",
             )
             continue
+        if config.context_window:
+            return random_context_crop(rng, image, config.height, config.width, config.scale_range)
         return random_crop(rng, image, config.height, config.width, config.scale_range)
     raise ValueError(
         f"source {config.source!r}: none of its {len(source)} images is usable "
@@ -402,7 +506,9 @@ def make_dataset(
     process_count: int = 1,
 ) -> Pipeline:
     """Endless shuffled batches of random crops: ``make_dataset(...)[step]`` is uint8
-    [batch_size, config.height, config.width, 3], a pure function of (seed, step).
+    [batch_size, config.height, config.width, 3] (with ``config.context_window``, the crops'
+    context windows, [batch_size, S, S, 4], see ``random_context_crop``), a pure function of
+    (seed, step).
 
     ``batch_size`` is per process. Global batch ``step`` is the concatenation over processes of
     their batches, process p holding rows [p * batch_size, (p + 1) * batch_size); each process

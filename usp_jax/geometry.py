@@ -25,6 +25,8 @@ _UNIT_CORNERS = ((-1.0, -1.0), (1.0, -1.0), (1.0, 1.0), (-1.0, 1.0))
 # Sign of each corner's perspective displacement: moving TL/BR one way and TR/BL the other shrinks one
 # edge of the patch and stretches the opposite one (a keystone), i.e. a genuine projective distortion.
 _KEYSTONE = (1.0, -1.0, 1.0, -1.0)
+# How HomographyConfig.rotation_range is drawn from.
+ROTATION_DISTRIBUTIONS = ("uniform",)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -54,6 +56,12 @@ class HomographyConfig:
         that the random translation may use; 0 keeps the patch centred.
       num_candidates: candidates drawn in parallel; the first that fits is used. If none fits, the
         centred, unrotated patch of size patch_ratio is used (always valid).
+      rotation_range: (low, high) in degrees, -360 <= low <= high <= 360, or None (the default) for
+        U(-max_angle, max_angle). Drawn only by `sample_window_homography`, whose context window
+        lets a rotated patch fit at any angle; `sample_homography` rejects a config that sets it,
+        because inside the crop such a patch would almost never fit. Positive angles turn B's
+        content counter-clockwise on screen, as cv2.getRotationMatrix2D's do.
+      rotation_distribution: how the angle is drawn from rotation_range; "uniform" is the only one.
     """
 
     patch_ratio: float = 0.85
@@ -62,6 +70,8 @@ class HomographyConfig:
     perspective: float = 0.2
     translation: float = 1.0
     num_candidates: int = 64
+    rotation_range: tuple[float, float] | None = None
+    rotation_distribution: str = "uniform"
 
     def __post_init__(self):
         checks = {
@@ -75,6 +85,18 @@ class HomographyConfig:
         for name, ok in checks.items():
             if not ok:
                 raise ValueError(f"HomographyConfig.{name}={getattr(self, name)!r} is out of range")
+        if self.rotation_range is not None:
+            try:
+                low, high = (float(v) for v in self.rotation_range)
+            except (TypeError, ValueError):
+                raise ValueError(f"HomographyConfig.rotation_range={self.rotation_range!r} must be "
+                                 "(low, high) in degrees, or None") from None
+            if not -360.0 <= low <= high <= 360.0:
+                raise ValueError(f"HomographyConfig.rotation_range={self.rotation_range!r} must satisfy "
+                                 "-360 <= low <= high <= 360 (degrees)")
+        if self.rotation_distribution not in ROTATION_DISTRIBUTIONS:
+            raise ValueError(f"HomographyConfig.rotation_distribution={self.rotation_distribution!r} must "
+                             f"be one of {', '.join(ROTATION_DISTRIBUTIONS)}")
 
 
 def _normalise(homography: jax.Array) -> jax.Array:
@@ -199,6 +221,10 @@ def sample_homography(key: jax.Array, height: int, width: int,
     """
     if height < 2 or width < 2:
         raise ValueError(f"sample_homography needs an image of at least 2x2 pixels, got {height}x{width}")
+    if config.rotation_range is not None:
+        raise ValueError("HomographyConfig.rotation_range is drawn by sample_window_homography only (in "
+                         "training: data.context_window=True); inside the crop a patch rotated that far "
+                         "would almost never fit")
     n = config.num_candidates
     key_perspective, key_scale, key_angle, key_translation = jax.random.split(key, 4)
     half = jnp.array([(width - 1) / 2, (height - 1) / 2], jnp.float32)
@@ -225,3 +251,98 @@ def sample_homography(key: jax.Array, height: int, width: int,
 
     to_output = jnp.diag(jnp.array([width - 1, height - 1, 1], jnp.float32))
     return compose_homographies(to_output, invert_homography(_unit_square_to_quad(patch)))
+
+
+def window_origin(height: int, width: int, window: tuple[int, int]) -> tuple[int, int]:
+    """(x, y) of the top-left pixel of a [height, width] crop centred in a [window_height, window_width]
+    context window: ((window_width - width) // 2, (window_height - height) // 2), Python ints."""
+    window_height, window_width = window
+    if window_height < height or window_width < width:
+        raise ValueError(f"a {window_height}x{window_width} window cannot hold a {height}x{width} crop")
+    return (window_width - width) // 2, (window_height - height) // 2
+
+
+def _rotation_angles(key: jax.Array, shape: tuple[int, ...], config: HomographyConfig) -> jax.Array:
+    """Angles in radians [*shape] from rotation_range (degrees) if set, else U(-max_angle, max_angle)."""
+    if config.rotation_range is None:
+        low, high = -config.max_angle, config.max_angle
+    else:
+        low, high = (math.radians(v) for v in config.rotation_range)
+    return jax.random.uniform(key, shape, minval=low, maxval=high)  # "uniform", the only distribution
+
+
+def _rotations(angle: jax.Array) -> jax.Array:
+    """[..., 2, 2] rotation matrices; positive angles turn (1, 0) towards +y (clockwise on screen)."""
+    cos, sin = jnp.cos(angle), jnp.sin(angle)
+    return jnp.stack([jnp.stack([cos, -sin], -1), jnp.stack([sin, cos], -1)], -2)
+
+
+def sample_window_homography(key: jax.Array, height: int, width: int, window: tuple[int, int],
+                             config: HomographyConfig = HomographyConfig()) -> jax.Array:
+    """The random spatial transform T of paper section 3 for a crop at the centre of a context window,
+    so that T can rotate by any angle without zooming in.
+
+    Branch A is the [height, width] crop at `window_origin(height, width, window)` of a larger
+    [window_height, window_width] window of the same photo at the same pixel scale; branch B, also
+    [height, width], is rendered from the whole window. The returned H maps A's pixel coordinates to
+    B's (what the losses expect), so B = warp_image(window, H @ shift, (height, width)) with shift the
+    translation by -window_origin. The patch of A that B shows is drawn as in `sample_homography`
+    (patch_ratio, keystone, scale), turned about its centre by an angle from rotation_range (or
+    U(-max_angle, max_angle)), and moved by up to `translation` of the margin the unrotated patch
+    leaves inside A, so B overlaps A about as much at any angle. A candidate fits when its quad lies
+    inside the window: B then shows window content only. If none of num_candidates fits, the centred
+    patch of size patch_ratio is used, turned by the drawn angle when that fits in the window
+    (always, for a window whose sides reach the crop's diagonal, like `usp_jax.data.context_side`'s)
+    and unturned otherwise. All candidates share one angle, so the angles follow their
+    distribution exactly.
+
+    Args:
+      key: PRNG key.
+      height, width: crop (A) and output (B) size in pixels (static), both >= 2.
+      window: (window_height, window_width) of the context window (static), >= (height, width).
+      config: ranges (static).
+    Returns:
+      float32 [3, 3] with H[2, 2] = 1, mapping A's pixels to B's.
+    """
+    if height < 2 or width < 2:
+        raise ValueError(f"sample_window_homography needs a crop of at least 2x2 pixels, got "
+                         f"{height}x{width}")
+    origin_x, origin_y = window_origin(height, width, window)
+    n = config.num_candidates
+    key_perspective, key_scale, key_angle, key_translation = jax.random.split(key, 4)
+    half = jnp.array([(width - 1) / 2, (height - 1) / 2], jnp.float32)
+    unit = jnp.array(_UNIT_CORNERS, jnp.float32)
+    # The window in A's pixel coordinates; bilinear sampling needs the preimages inside it.
+    window_low = jnp.array([-origin_x, -origin_y], jnp.float32)
+    window_high = jnp.array([window[1] - 1 - origin_x, window[0] - 1 - origin_y], jnp.float32)
+
+    keystone = jax.random.uniform(key_perspective, (n, 1, 2), minval=-config.perspective,
+                                  maxval=config.perspective)
+    corners = (config.patch_ratio * unit + jnp.array(_KEYSTONE)[:, None] * keystone) * half  # [n, 4, 2]
+    scale = jax.random.uniform(key_scale, (n, 1, 1), minval=1 - config.scaling, maxval=1 + config.scaling)
+    corners = scale * corners
+    # One angle for all candidates: rejection then shapes only scale, keystone and translation, and
+    # the angles follow their distribution exactly (per-candidate angles thin out the diagonals,
+    # whose rotated patches are the widest).
+    rotation = _rotations(_rotation_angles(key_angle, (), config))
+    # The margin of the unrotated patch: measured after rotation, it would shrink to nothing at
+    # 45-135 degrees and let B drift off A at others, so overlap would depend on the angle.
+    margin = config.translation * jnp.maximum(half - jnp.abs(corners).max(axis=1), 0.0)  # [n, 2]
+    shift = jax.random.uniform(key_translation, (n, 2), minval=-1.0, maxval=1.0) * margin
+    patches = corners @ rotation.T + (half + shift)[:, None]
+    inside = jnp.all((patches >= window_low) & (patches <= window_high), axis=(1, 2))
+    fits = inside & _is_convex(patches)
+
+    upright = config.patch_ratio * unit * half + half
+    turned = (config.patch_ratio * unit * half) @ rotation.T + half
+    turned_fits = jnp.all((turned >= window_low) & (turned <= window_high))
+    fallback = jnp.where(turned_fits, turned, upright)
+    patch = jnp.where(jnp.any(fits), patches[jnp.argmax(fits)], fallback)
+
+    to_output = jnp.diag(jnp.array([width - 1, height - 1, 1], jnp.float32))
+    return compose_homographies(to_output, invert_homography(_unit_square_to_quad(patch)))
+
+
+def translation(x: float, y: float) -> jax.Array:
+    """float32 [3, 3] homography adding (x, y) to every point."""
+    return jnp.array([[1.0, 0.0, x], [0.0, 1.0, y], [0.0, 0.0, 1.0]], jnp.float32)

@@ -1,7 +1,9 @@
 """Self-supervised training (paper section 3): siamese branches, a jit data-parallel step, the loop.
 
 Branch A is the (photometrically augmented) image, branch B the same image warped by a random
-homography T and augmented independently. Both go through one network with shared parameters;
+homography T and augmented independently (``make_branches``; with ``data.context_window``, B is
+rendered from a larger window around A so that T may rotate by any angle,
+``make_window_branches``). Both go through one network with shared parameters;
 ``losses.total_loss`` compares them. The host only decodes and crops: homographies, warps and
 augmentation are sampled on the device inside the jitted step, from a key derived from the step
 number, so a resumed run sees exactly the randomness an uninterrupted one would.
@@ -60,6 +62,18 @@ def make_optimizer(cfg: config_lib.OptimConfig) -> optax.GradientTransformation:
     return optax.chain(optax.clip_by_global_norm(cfg.clip_norm), adam) if cfg.clip_norm else adam
 
 
+def check_config(config: config_lib.Config) -> None:
+    """Raises ValueError for settings that only make sense together (each section validates
+    itself; ``config.override`` applies one key at a time, so the sections cannot check each
+    other)."""
+    if config.homography.rotation_range is not None and not config.data.context_window:
+        raise ValueError(
+            f"homography.rotation_range={config.homography.rotation_range} needs "
+            "data.context_window=True: inside the crop a patch rotated that far would almost never "
+            "fit (see experiments/rotation.py)"
+        )
+
+
 def create_state(config: config_lib.Config) -> TrainState:
     key = jax.random.PRNGKey(config.seed)
     init_key, train_key = jax.random.split(key)
@@ -111,6 +125,60 @@ def make_branches(
     return images_a, images_b, homographies
 
 
+# Bilinear weights of a pixel whose neighbours all show the photo sum to 1 up to rounding.
+_VALID_ALPHA = 1.0 - 1e-3
+
+
+def make_window_branches(
+    key: jax.Array,
+    windows: jax.Array,
+    height: int,
+    width: int,
+    homography_cfg: geometry.HomographyConfig,
+    photometric_cfg: augment.PhotometricConfig,
+) -> tuple[jax.Array, jax.Array, jax.Array, jax.Array]:
+    """Section 3 with B rendered from a context window around A, so that T may rotate by any angle.
+
+    Branch A = aug(the [height, width] crop at the centre of each window); branch B = aug(T(the
+    whole window)), with T from ``geometry.sample_window_homography``, so B shows real photo content
+    at any rotation. B's pixels whose source lies outside the window or on its padding are 0 and
+    False in ``valid_b``; their points have no partner inside A, which the losses already mask.
+
+    Args:
+      key: PRNG key.
+      windows: [B, S_h, S_w, 4] float in [0, 1], RGB and validity (1 = photo, 0 = padding), as
+        ``data.random_context_crop`` delivers them (divided by 255); the centre crops lie inside
+        the photo.
+      height, width: the crop's (and B's) size in pixels (static).
+      homography_cfg, photometric_cfg: static.
+    Returns:
+      images_a [B, height, width, 3], images_b [B, height, width, 3], T [B, 3, 3] mapping A's pixels
+      to B's (as ``make_branches``), and valid_b bool [B, height, width].
+    """
+    batch, window_height, window_width, _ = windows.shape
+    window = (window_height, window_width)
+    origin_x, origin_y = geometry.window_origin(height, width, window)
+    k_h, k_a, k_b = jax.random.split(key, 3)
+    homographies = jax.vmap(
+        lambda k: geometry.sample_window_homography(k, height, width, window, homography_cfg)
+    )(jax.random.split(k_h, batch))
+    # Window pixels are A's shifted by the origin: undo the shift, then apply T.
+    from_window = geometry.compose_homographies(
+        homographies, geometry.translation(-origin_x, -origin_y)
+    )
+    warped, inside = jax.vmap(lambda im, h: geometry.warp_image(im, h, (height, width)))(
+        windows, from_window
+    )
+    valid_b = inside & (warped[..., 3] >= _VALID_ALPHA)
+    crops = windows[:, origin_y : origin_y + height, origin_x : origin_x + width, :3]
+    augment_all = jax.vmap(lambda k, im: augment.photometric_augment(k, im, photometric_cfg))
+    images_a = augment_all(jax.random.split(k_a, batch), crops)
+    # Zeroed after augmenting too: brightness, contrast and noise would otherwise paint the
+    # missing pixels grey or speckled, i.e. texture the network could learn to find points on.
+    images_b = augment_all(jax.random.split(k_b, batch), warped[..., :3]) * valid_b[..., None]
+    return images_a, images_b, homographies, valid_b
+
+
 def score_position_r2(scores: jax.Array, keypoints: jax.Array) -> jax.Array:
     """How much of the score variation is a linear ramp across the image, mean over the batch.
 
@@ -143,7 +211,8 @@ def _prediction_stats(pred: Predictions) -> dict:
 def train_step(
     state: TrainState, images: jax.Array, config: config_lib.Config
 ) -> tuple[TrainState, dict]:
-    """One optimisation step on a uint8 batch [B, H, W, 3]; a pure function of its inputs.
+    """One optimisation step on a uint8 batch [B, H, W, 3] (with ``config.data.context_window``,
+    context windows [B, S, S, 4], see ``make_window_branches``); a pure function of its inputs.
 
     Returns the new state and a metrics dict (every loss term, K, mean d_k, score and position
     statistics, ``finite``). A step whose loss, gradients or new parameters are not finite leaves
@@ -154,9 +223,17 @@ def train_step(
     batch, height, width, _ = images.shape
     images = images.astype(jnp.float32) / 255.0
     step_key = jax.random.fold_in(state.key, state.step)
-    images_a, images_b, homographies = make_branches(
-        step_key, images, config.homography, config.photometric
-    )
+    branch_stats = {}
+    if config.data.context_window:
+        height, width = config.data.height, config.data.width
+        images_a, images_b, homographies, valid_b = make_window_branches(
+            step_key, images, height, width, config.homography, config.photometric
+        )
+        branch_stats["data/valid_b"] = jnp.mean(valid_b)
+    else:
+        images_a, images_b, homographies = make_branches(
+            step_key, images, config.homography, config.photometric
+        )
 
     def loss_fn(params):
         # One forward over both branches: the siamese weights are shared, and BatchNorm sees both
@@ -184,7 +261,7 @@ def train_step(
     finite = jnp.isfinite(loss) & jnp.isfinite(grad_norm) & jnp.isfinite(optax.tree.norm(params))
     new_state = TrainState(state.step + 1, params, batch_stats, opt_state, state.key)
     new_state = jax.tree.map(lambda new, old: jnp.where(finite, new, old), new_state, state)
-    metrics.update({"grad_norm": grad_norm, "finite": finite.astype(jnp.float32)})
+    metrics.update({"grad_norm": grad_norm, "finite": finite.astype(jnp.float32), **branch_stats})
     return new_state, metrics
 
 
@@ -321,6 +398,7 @@ def fit(
         jax.distributed.initialize()
     workdir = pathlib.Path(workdir).expanduser().absolute()
     num_steps = config.num_steps if num_steps is None else num_steps
+    check_config(config)
     if config.batch_size % jax.device_count():
         raise ValueError(
             f"batch_size {config.batch_size} is not divisible by the {jax.device_count()} devices"
