@@ -36,6 +36,42 @@ def test_make_pairs_writes_hpatches_layout(pairs_dir):
     assert (pairs_dir / "v_astronaut" / "H_1_6").exists()
 
 
+def test_make_pairs_rotation_flags_turn_the_viewpoint_pairs(photo, tmp_path):
+    from usp_jax.pairs import pair_rotations
+
+    images = tmp_path / "photos"
+    images.mkdir()
+    small = cv2.resize(photo, (160, 160), interpolation=cv2.INTER_AREA)
+    cv2.imwrite(str(images / "astronaut.png"), cv2.cvtColor(small, cv2.COLOR_RGB2BGR))
+    common = ["make-pairs", "--images", str(images), "--size", "60x80", "--views", "3", "--no-progress"]
+    assert main([*common, "--out", str(tmp_path / "listed"), "--rotation-angles", "180", "90"]) == 0
+    assert main([*common, "--out", str(tmp_path / "drawn"), "--rotation", "180"]) == 0
+    for name, options in (("listed", dict(rotation_angles=[180, 90])), ("drawn", dict(rotation=180))):
+        turns = pair_rotations(0, 3, **options)
+        for k, turn in zip((2, 3), turns):
+            homography = np.loadtxt(tmp_path / name / "v_astronaut" / f"H_1_{k}")
+            # The rotation of H's Jacobian at the centre, with cv2.getRotationMatrix2D's sign.
+            centre = np.array([39.5, 29.5])
+            moved = cv2.perspectiveTransform(
+                np.array([[centre, centre + [0.01, 0], centre + [0, 0.01]]]), homography)[0]
+            jacobian = np.stack([moved[1] - moved[0], moved[2] - moved[0]], axis=1) / 0.01
+            angle = -np.degrees(np.arctan2(jacobian[1, 0] - jacobian[0, 1],
+                                           jacobian[0, 0] + jacobian[1, 1]))
+            assert abs((angle - turn + 180) % 360 - 180) < 40  # the view's own turn and keystone
+    assert sorted(pair_rotations(0, 3, rotation_angles=[180, 90])) == [90, 180]
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["--rotation", "90", "--rotation-angles", "0", "90"], "not allowed with"),
+    (["--rotation", "ninety"], "invalid float"),
+])
+def test_make_pairs_rotation_flags_are_parsed_strictly(argv, message, capsys):
+    with pytest.raises(SystemExit) as exit_info:
+        parse_args(["make-pairs", "--images", "x", "--out", "y", *argv])
+    assert exit_info.value.code == 2
+    assert message in capsys.readouterr().err.strip().splitlines()[-1]
+
+
 def test_evaluate_baselines_prints_table_and_writes_json(pairs_dir, tmp_path, capsys):
     out = tmp_path / "r.json"
     assert main(["evaluate", "--hpatches", str(pairs_dir), "--baselines-only", "--baselines",
@@ -139,6 +175,7 @@ def test_detection_on_a_smaller_copy_returns_keypoints_in_the_originals_pixels(m
         (["detect", "{tmp}/absent.png", "--nms", "-1"], "nms_radius"),
         (["match", "{tmp}/absent.png", "{tmp}/other.png"], "absent.png"),
         (["make-pairs", "--images", "{tmp}/void", "--out", "{tmp}/o"], "void"),
+        (["make-pairs", "--images", "{tmp}", "--out", "{tmp}/o", "--rotation", "200"], "[0, 180]"),
         (["export", "--checkpoint", "{tmp}/none", "--weights", "{tmp}/w.npz"], "none"),
     ],
 )

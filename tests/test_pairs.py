@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 import skimage.data
 
-from usp_jax.pairs import make_pairs
+from usp_jax.pairs import make_pairs, pair_rotations
 
 HEIGHT, WIDTH = 60, 80
 
@@ -35,6 +35,29 @@ def scenes(photos, tmp_path_factory):
 
 def read(path):
     return cv2.imread(str(path)).astype(np.float32) / 255.0
+
+
+def turn_of(homography):
+    """In-plane rotation (degrees, cv2.getRotationMatrix2D's sign) of H's Jacobian at image 1's centre."""
+    centre, step = np.array([(WIDTH - 1) / 2, (HEIGHT - 1) / 2]), 1e-2
+    moved = cv2.perspectiveTransform(np.array([[centre, centre + [step, 0], centre + [0, step]]]),
+                                     homography)[0]
+    jacobian = np.stack([moved[1] - moved[0], moved[2] - moved[0]], axis=1) / step
+    return -np.degrees(np.arctan2(jacobian[1, 0] - jacobian[0, 1], jacobian[0, 0] + jacobian[1, 1]))
+
+
+def assert_registered(scene, k):
+    """Image 1 warped by H_1_k with OpenCV is image k wherever image 1 covers it."""
+    homography = np.loadtxt(scene / f"H_1_{k}")
+    covered = cv2.warpPerspective(np.ones((HEIGHT, WIDTH), np.float32), homography, (WIDTH, HEIGHT))
+    # Away from the edge of image 1's footprint, where bilinear weights mix in the black border.
+    inside = cv2.erode((covered >= 1 - 1e-6).astype(np.uint8), np.ones((5, 5), np.uint8)).astype(bool)
+    assert inside.mean() > 0.3
+    warped = cv2.warpPerspective(read(scene / "1.ppm"), homography, (WIDTH, HEIGHT))
+    error = np.abs(warped - read(scene / f"{k}.ppm"))[inside].mean()
+    # Both images are resampled from the same photo: only interpolation differences remain.
+    assert error < 0.03
+    return homography, error, inside
 
 
 def test_make_pairs_writes_hpatches_layout(scenes):
@@ -134,4 +157,64 @@ def test_views_outside_the_hpatches_layout_are_rejected_before_writing(photos, t
     # The evaluation reads 1.ppm ... 6.ppm only: a 7th view would be written and never scored.
     with pytest.raises(ValueError, match="2 to 6"):
         make_pairs(photos, tmp_path / "out", num_views=views)
+    assert not (tmp_path / "out").exists()
+
+
+ANGLES = [90.0, 180.0, -90.0, 45.0, 135.0]
+
+
+@pytest.fixture(scope="module")
+def rotated(photos, tmp_path_factory):
+    with pytest.warns(UserWarning, match="broken.jpg"):
+        return make_pairs(photos, tmp_path_factory.mktemp("rotated"), size=(HEIGHT, WIDTH), kinds=("v",),
+                          rotation_angles=ANGLES)
+
+
+def test_rotated_pairs_register_image_1_onto_image_k_and_turn_by_the_listed_angles(rotated):
+    # Indices in the source list, where broken.jpg holds position 1.
+    for index, scene in zip((0, 2), rotated):
+        turns = pair_rotations(index, 6, rotation_angles=ANGLES)
+        assert sorted(turns) == sorted(ANGLES)  # five views, five angles: each once
+        for k, turn in zip(range(2, 7), turns):
+            homography, error, inside = assert_registered(scene, k)
+            nudged = np.array([[1, 0, 1.5], [0, 1, 1.5], [0, 0, 1]]) @ homography
+            misregistered = np.abs(cv2.warpPerspective(read(scene / "1.ppm"), nudged, (WIDTH, HEIGHT))
+                                   - read(scene / f"{k}.ppm"))[inside]
+            assert misregistered.mean() > 2 * error
+            # The listed angle, give or take the view's own rotation (up to 6 (k - 1) degrees) and the
+            # keystone's effect on the Jacobian.
+            off = (turn_of(homography) - turn + 180) % 360 - 180
+            assert abs(off) < 6 * (k - 1) + 10
+
+
+def test_rotated_views_have_no_black_borders(tmp_path):
+    bright = (100 + 0.6 * skimage.data.astronaut()).astype(np.uint8)
+    write_photo(tmp_path / "bright.png", bright, (300, 300))  # only shrunk, as in the upright test
+    for scene in make_pairs(tmp_path, tmp_path / "out", size=(HEIGHT, WIDTH), kinds=("v",), rotation=180):
+        for k in range(1, 7):
+            assert cv2.imread(str(scene / f"{k}.ppm")).min() >= 99
+        assert_registered(scene, 6)
+
+
+def test_drawn_rotations_are_uniform_deterministic_and_listed_ones_serve_every_view_alike():
+    drawn = np.array([pair_rotations(i, 6, seed=3, rotation=180) for i in range(200)])
+    assert drawn.min() >= -180 and drawn.max() <= 180
+    assert np.histogram(drawn, bins=4, range=(-180, 180))[0].min() > 0.2 * drawn.size
+    assert pair_rotations(7, 6, seed=3, rotation=180) == drawn[7].tolist()
+    assert pair_rotations(7, 6, seed=4, rotation=180) != drawn[7].tolist()
+    assert pair_rotations(0, 6) == [0.0] * 5
+    # Over as many photos as angles, each view k meets every angle once.
+    listed = np.array([pair_rotations(i, 4, rotation_angles=[0, 90, 180]) for i in range(3)])
+    assert all(sorted(column) == [0, 90, 180] for column in listed.T)
+
+
+@pytest.mark.parametrize("changes, message", [
+    (dict(rotation=90, rotation_angles=[0, 90]), "not both"),
+    (dict(rotation=200), r"\[0, 180\]"),
+    (dict(rotation_angles=[0, 270]), r"\[-180, 180\]"),
+    (dict(rotation_angles=[]), "one or more"),
+])
+def test_bad_rotations_are_rejected_before_writing(photos, tmp_path, changes, message):
+    with pytest.raises(ValueError, match=message):
+        make_pairs(photos, tmp_path / "out", **changes)
     assert not (tmp_path / "out").exists()

@@ -151,7 +151,8 @@ def cmd_make_pairs(args) -> None:
     from usp_jax.pairs import make_pairs
 
     scenes = make_pairs(args.images, args.out, seed=args.seed, size=args.size,
-                        num_views=args.views, progress=not args.no_progress)
+                        num_views=args.views, rotation=args.rotation,
+                        rotation_angles=args.rotation_angles, progress=not args.no_progress)
     print(f"wrote {len(scenes)} scenes to {args.out}")
 
 
@@ -353,6 +354,13 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--size", type=_resolution, default=(480, 640), help="HxW of generated images")
     p.add_argument("--views", type=_positive, default=6)
     p.add_argument("--seed", type=int, default=0)
+    turn = p.add_mutually_exclusive_group()
+    turn.add_argument("--rotation", type=float, metavar="DEG",
+                      help="also turn every viewpoint pair by an angle drawn uniformly from [-DEG, DEG]"
+                           " (0 to 180; 180: the full circle), positive counter-clockwise")
+    turn.add_argument("--rotation-angles", type=float, nargs="+", metavar="DEG",
+                      help="the same with fixed angles in [-180, 180], used in turn, e.g."
+                           " 0 45 90 135 180")
     p.add_argument("--no-progress", action="store_true")
     p.set_defaults(func=cmd_make_pairs)
 

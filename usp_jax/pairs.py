@@ -10,6 +10,11 @@ Every source photo gives up to two scenes, laid out like HPatches (`<scene>/1.pp
 - `i_<stem>`: illumination changes. The same frontal image 1, identity homographies, and images 2..N
   with gamma, brightness, contrast, colour temperature and noise changes of growing strength.
 
+With `rotation` or `rotation_angles`, every viewpoint pair (1, k) also turns by an in-plane angle, drawn
+uniformly or taken from a list: views 2..N are then drawn by geometry.sample_window_homography inside a
+square region of the photo around image 1 that holds a turned view at any angle, so rotated views
+show real content too, and H_1_k stays exact.
+
 Output is deterministic for a seed (and a given order of the source list).
 """
 
@@ -27,7 +32,7 @@ import numpy as np
 from tqdm import tqdm
 
 from usp_jax.data import IMAGE_SUFFIXES, read_image
-from usp_jax.geometry import HomographyConfig, sample_homography
+from usp_jax.geometry import HomographyConfig, sample_homography, sample_window_homography, window_origin
 
 # Image 1 of every scene: an upright, undistorted crop, like the frontal reference shots of HPatches.
 REFERENCE_VIEW = HomographyConfig(patch_ratio=0.75, scaling=0.0, max_angle=0.0, perspective=0.0)
@@ -39,11 +44,48 @@ HARDEST_VIEW = HomographyConfig(patch_ratio=0.75, scaling=0.2, max_angle=math.pi
                                 num_candidates=256)
 
 
+# Seeds the drawn rotation angles' generator together with (seed, photo index): a stream of its own, so
+# the illumination scenes' generator, seeded by (seed, photo index), draws what it drew before.
+_ROTATION_STREAM = 1
+
+
 def _view_config(strength: float) -> HomographyConfig:
     """HARDEST_VIEW with its rotation, scale and perspective ranges scaled by strength in (0, 1]."""
     return dataclasses.replace(HARDEST_VIEW, scaling=HARDEST_VIEW.scaling * strength,
                                max_angle=HARDEST_VIEW.max_angle * strength,
                                perspective=HARDEST_VIEW.perspective * strength)
+
+
+def _check_rotation(rotation: float | None,
+                    rotation_angles: Sequence[float] | None) -> tuple[float, ...] | None:
+    """The fixed angles as a tuple (None when not given), after checking both rotation arguments."""
+    if rotation is not None and rotation_angles is not None:
+        raise ValueError("give rotation (a range to draw from) or rotation_angles (a list), not both")
+    if rotation is not None and not 0.0 <= rotation <= 180.0:
+        raise ValueError(f"rotation must lie in [0, 180] degrees, got {rotation}")
+    if rotation_angles is None:
+        return None
+    angles = tuple(float(a) for a in rotation_angles)
+    if not angles or not all(-180.0 <= a <= 180.0 for a in angles):
+        raise ValueError(f"rotation_angles must be one or more angles in [-180, 180] degrees, got "
+                         f"{list(rotation_angles)}")
+    return angles
+
+
+def pair_rotations(index: int, num_views: int, *, seed: int = 0, rotation: float | None = None,
+                   rotation_angles: Sequence[float] | None = None) -> list[float]:
+    """The extra in-plane angles in degrees of the viewpoint pairs (1, 2) .. (1, num_views) of source photo
+    `index` (its position in the source list): drawn uniformly from [-rotation, rotation], or
+    rotation_angles[(index + k - 2) % len(rotation_angles)] for pair (1, k), so that every angle of the list
+    serves every view strength alike over len(rotation_angles) consecutive photos. Positive = image k's
+    content turned counter-clockwise on screen against image 1's (cv2.getRotationMatrix2D's sign)."""
+    angles = _check_rotation(rotation, rotation_angles)
+    if angles is not None:
+        return [angles[(index + k - 2) % len(angles)] for k in range(2, num_views + 1)]
+    if rotation is None:
+        return [0.0] * (num_views - 1)
+    rng = np.random.default_rng([seed, index, _ROTATION_STREAM])
+    return [float(a) for a in rng.uniform(-rotation, rotation, size=num_views - 1)]
 
 
 def _list_sources(images: str | Path | Iterable[str | Path]) -> list[Path]:
@@ -112,6 +154,7 @@ def _write_scene(scene: Path, views: Sequence[np.ndarray], homographies: Sequenc
 
 def make_pairs(images: str | Path | Iterable[str | Path], out_dir: str | Path, *, seed: int = 0,
                size: tuple[int, int] = (480, 640), num_views: int = 6, kinds: Sequence[str] = ("v", "i"),
+               rotation: float | None = None, rotation_angles: Sequence[float] | None = None,
                progress: bool = False) -> list[Path]:
     """Writes `v_<stem>` / `i_<stem>` HPatches-style scenes for every readable source photo.
 
@@ -120,15 +163,23 @@ def make_pairs(images: str | Path | Iterable[str | Path], out_dir: str | Path, *
       out_dir: where the scene folders go (created; existing scenes of the same name are overwritten).
       seed: the output is a deterministic function of seed, the photos and their order.
       size: (H, W) of every generated image. Photos are resized to cover (H, W) / patch_ratio first
-        (enlarged when smaller, so every view is a crop at roughly the photo's own scale).
+        (enlarged when smaller, so every view is a crop at roughly the photo's own scale; with rotation,
+        the larger square below).
       num_views: images per scene, 2 to 6 (HPatches has 6).
       kinds: which scene kinds to write, a subset of ("v", "i").
+      rotation: degrees in [0, 180]: every viewpoint pair (1, k) also turns by an angle drawn uniformly
+        from [-rotation, rotation], on top of its own random rotation (up to +-30 degrees at the hardest
+        view). Views are then cut from a square region of the photo that holds a view turned by any
+        angle, so the photo is enlarged about 1.4 times more than without rotation.
+      rotation_angles: instead of `rotation`, fixed angles in [-180, 180] degrees, used in turn
+        (`pair_rotations`).
       progress: show a tqdm progress bar over the photos.
     Returns:
       The scene folders written, in order.
     Raises:
       FileNotFoundError: the folder (or a listed file) does not exist, holds no image, or none is readable.
-      ValueError: bad num_views/kinds/size, or two photos with the same stem (their scenes would collide).
+      ValueError: bad num_views/kinds/size/rotation, or two photos with the same stem (their scenes would
+        collide).
     Unreadable photos are skipped with a warning naming them.
     """
     height, width = size
@@ -138,14 +189,29 @@ def make_pairs(images: str | Path | Iterable[str | Path], out_dir: str | Path, *
         raise ValueError(f"num_views must be 2 to 6 (HPatches layout), got {num_views}")
     if not kinds or set(kinds) - {"v", "i"}:
         raise ValueError(f"kinds must be a non-empty subset of ('v', 'i'), got {tuple(kinds)}")
+    _check_rotation(rotation, rotation_angles)
+    rotated = rotation is not None or rotation_angles is not None
     sources = _list_sources(images)
     out_dir = Path(out_dir)
+    # The region of the photo views are cut from, in the [height, width] frame in which sample_homography
+    # works: the frame itself, or with rotation a window around it that holds REFERENCE_VIEW's patch,
+    # enlarged to the middle of the views' scale range, turned by any angle. A larger window would make
+    # rejection depend even less on the angle, at the price of enlarging the photo further.
+    if rotated:
+        middle_scale = 1 + HARDEST_VIEW.scaling / 2
+        side = math.ceil(REFERENCE_VIEW.patch_ratio * middle_scale * math.hypot(height, width))
+        window = (max(height, side), max(width, side))
+    else:
+        window = (height, width)
     # The photo is prepared at the size whose REFERENCE_VIEW crop has the output size: views are then
-    # resampled about 1:1 instead of enlarged. Its pixel frame is mapped onto the [height, width] frame in
-    # which sample_homography works; that scaling cancels in H_1_k = Hk @ inv(H1).
-    source_height = math.ceil(height / REFERENCE_VIEW.patch_ratio)
-    source_width = math.ceil(width / REFERENCE_VIEW.patch_ratio)
-    to_frame = np.diag([(width - 1) / (source_width - 1), (height - 1) / (source_height - 1), 1.0])
+    # resampled about 1:1 instead of enlarged. Its pixel frame is mapped onto the window, and the window onto
+    # the frame; that mapping cancels in H_1_k = Hk @ inv(H1).
+    source_height = math.ceil(window[0] / REFERENCE_VIEW.patch_ratio)
+    source_width = math.ceil(window[1] / REFERENCE_VIEW.patch_ratio)
+    to_frame = np.diag([(window[1] - 1) / (source_width - 1), (window[0] - 1) / (source_height - 1), 1.0])
+    if rotated:
+        origin_x, origin_y = window_origin(height, width, window)
+        to_frame = np.array([[1.0, 0.0, -origin_x], [0.0, 1.0, -origin_y], [0.0, 0.0, 1.0]]) @ to_frame
     strengths = [(k - 1) / (num_views - 1) for k in range(2, num_views + 1)]  # of images 2..N
     configs = [REFERENCE_VIEW] + [_view_config(strength) for strength in strengths]
     scenes: list[Path] = []
@@ -158,8 +224,20 @@ def make_pairs(images: str | Path | Iterable[str | Path], out_dir: str | Path, *
         key = jax.random.fold_in(jax.random.PRNGKey(seed), index)
         # Called eagerly on purpose: under jit every strength would be a separate compilation, while op-by-op
         # dispatch compiles each primitive once and then takes milliseconds per view.
-        frames = [np.asarray(sample_homography(jax.random.fold_in(key, k), height, width, config), np.float64)
-                  for k, config in enumerate(configs, start=1)]
+        if rotated:
+            turns = pair_rotations(index, num_views, seed=seed, rotation=rotation,
+                                   rotation_angles=rotation_angles)
+            frames = [np.asarray(sample_homography(jax.random.fold_in(key, 1), height, width, REFERENCE_VIEW),
+                                 np.float64)]
+            for k, (config, turn) in enumerate(zip(configs[1:], turns), start=2):
+                # The pair's own rotation range, centred on the extra angle: the two compose.
+                own = math.degrees(config.max_angle)
+                config = dataclasses.replace(config, rotation_range=(turn - own, turn + own))
+                frames.append(np.asarray(sample_window_homography(jax.random.fold_in(key, k), height, width,
+                                                                  window, config), np.float64))
+        else:
+            frames = [np.asarray(sample_homography(jax.random.fold_in(key, k), height, width, config),
+                                 np.float64) for k, config in enumerate(configs, start=1)]
         # Every view lies inside the photo, so the black constant border never shows (a test checks it).
         views = [cv2.warpPerspective(photo, frame @ to_frame, (width, height), flags=cv2.INTER_LINEAR,
                                      borderMode=cv2.BORDER_CONSTANT, borderValue=0) for frame in frames]
