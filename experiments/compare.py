@@ -8,7 +8,9 @@ each method loses its homography accuracy.
 prints, per view k of the viewpoint scenes (``usp-jax make-pairs`` draws view k = 2 ... 6 with
 growing rotation, scale and keystone), every method's HA at eps 1/3/5, median corner error, LE,
 RS and MS; with ``--rotation PAIRS`` the same per range of the pairs' in-plane rotation, read
-from their homographies; and with ``--against``, the change of that file's UnsuperPoint against
+from their homographies, for every method in the file (0-10, 10-20, >=20 degrees, or 30-degree
+ranges up to 180 when some pair turns by 60 or more, as ``usp-jax make-pairs --rotation 180``
+makes them); and with ``--against``, the change of that file's UnsuperPoint against
 the first file's, in percent, with the 95% paired-bootstrap interval over the pairs that Table 1
 uses (``experiments/table1.py``).
 """
@@ -43,8 +45,14 @@ def by_view(rows: list[dict]) -> dict[str, dict[int, dict[str, float]]]:
     return _statistics(rows, lambda row: row["k"])
 
 
-# Edges (degrees) of the in-plane rotation ranges; a pair falls in the last range at or above its edge.
-ROTATION_EDGES = (0, 10, 20)
+# In-plane rotation ranges in degrees, (low, high), high None for open-ended: fine ones for upright
+# pairs, 30-degree ones up to 180 for pairs that turn much further (``usp-jax make-pairs
+# --rotation``). A pair falls in the last range whose low it reaches.
+ROTATION_RANGES = ((0, 10), (10, 20), (20, None))
+WIDE_ROTATION_RANGES = tuple((low, low + 30) for low in range(0, 180, 30))
+# Below this largest rotation the wide ranges would be two, coarser than the fine ones; the
+# held-out pairs reach 37 degrees (one pair; the rest stay under 24).
+WIDE_FROM = 60
 
 
 def in_plane_rotation(homography: np.ndarray, shape: tuple[int, int]) -> float:
@@ -60,31 +68,42 @@ def in_plane_rotation(homography: np.ndarray, shape: tuple[int, int]) -> float:
     return math.degrees(math.atan2(jacobian[1, 0] - jacobian[0, 1], jacobian[0, 0] + jacobian[1, 1]))
 
 
-def _rotation_edge(degrees: float) -> int:
-    """The edge of :data:`ROTATION_EDGES` that opens the range ``|degrees|`` falls in."""
-    return max(e for e in ROTATION_EDGES if abs(degrees) >= e)
+def rotation_ranges(angles) -> tuple[tuple[int, int | None], ...]:
+    """:data:`WIDE_ROTATION_RANGES` if any of ``angles`` (degrees) turns by :data:`WIDE_FROM` or
+    more, else :data:`ROTATION_RANGES`."""
+    return WIDE_ROTATION_RANGES if any(abs(a) >= WIDE_FROM for a in angles) else ROTATION_RANGES
 
 
-def _range_label(edge: int) -> str:
-    following = [e for e in ROTATION_EDGES if e > edge]
-    return f"{edge}-{following[0]}" if following else f">={edge}"
+def _range_label(low: int, ranges) -> str:
+    high = dict(ranges)[low]
+    return f">={low}" if high is None else f"{low}-{high}"
 
 
-def by_rotation(rows: list[dict], pairs_root: str | pathlib.Path) -> dict[str, dict[str, dict]]:
-    """``{method: {rotation range: statistics}}`` over the viewpoint pairs of evaluation rows, the
-    ranges of :data:`ROTATION_EDGES` applied to :func:`in_plane_rotation` of each pair's
-    homography at image 1's centre (read from ``pairs_root``, the folder that was evaluated)."""
+def by_rotation(rows: list[dict], pairs_root: str | pathlib.Path,
+                ranges=None) -> dict[str, dict[str, dict]]:
+    """``{method: {rotation range: statistics}}`` over the viewpoint pairs of evaluation rows, for
+    every method in them, the ranges (default :func:`rotation_ranges` of the evaluated pairs)
+    applied to :func:`in_plane_rotation` of each pair's homography at image 1's centre (read from
+    ``pairs_root``, the folder that was evaluated). Ranges without pairs are left out."""
     angles, sizes = {}, {}
     for files in evaluation.scan_sequences(pairs_root):
         if files.path1 not in sizes:
             sizes[files.path1] = evaluation.read_image(files.path1).shape[:2]
         angles[files.scene, files.index] = in_plane_rotation(files.homography, sizes[files.path1])
-    missing = {(r["scene"], r["k"]) for r in rows if r["split"] == "v"} - angles.keys()
+    evaluated = {(r["scene"], r["k"]) for r in rows if r["split"] == "v"}
+    missing = evaluated - angles.keys()
     if missing:
         raise ValueError(f"{pairs_root} lacks {len(missing)} evaluated pairs, e.g. {min(missing)}")
-    # Grouped by the ranges' numeric edges, so that they come out in order, then labelled.
-    table = _statistics(rows, lambda row: _rotation_edge(angles[row["scene"], row["k"]]))
-    return {m: {_range_label(edge): s for edge, s in ranges.items()} for m, ranges in table.items()}
+    if ranges is None:
+        ranges = rotation_ranges(angles[pair] for pair in evaluated)
+    lows = [low for low, _ in ranges]
+
+    def opening(row):  # The low of the range the pair falls in: numbers sort, labels would not.
+        turn = abs(angles[row["scene"], row["k"]])
+        return max((low for low in lows if turn >= low), default=lows[0])
+
+    table = _statistics(rows, opening)
+    return {m: {_range_label(low, ranges): s for low, s in groups.items()} for m, groups in table.items()}
 
 
 def _statistics(rows: list[dict], group_of) -> dict[str, dict]:

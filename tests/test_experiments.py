@@ -413,3 +413,70 @@ def test_the_rotation_stage_trains_on_larger_rotations_and_changes_nothing_else(
     # Measured with 4,000 draws (training_rotations.py): 4.8 % before, 36 % with the smaller patch.
     assert share_rotated_by_20_degrees(stage10) < 0.08
     assert share_rotated_by_20_degrees(stage11) > 0.3
+
+
+def test_the_fast_recipe_trains_the_fast_network_in_the_paper_networks_two_crop_regimes():
+    from usp_jax import config as config_lib
+
+    stage1 = config_lib.load(str(EXPERIMENTS / "fast.py"))
+    finetune = config_lib.load(f"{EXPERIMENTS / 'fast.py'}:finetune")
+    assert stage1.model.backbone == finetune.model.backbone == "fast"
+    # Stage 1 at the first paper stage's crops and rescaled descriptor weights; stage 2 at the
+    # paper's own size and loss, with the pixel scale of the first.
+    paper_stage1 = config_lib.load(str(EXPERIMENTS / "cpu_photos.py"))
+    assert (stage1.data, stage1.loss) == (paper_stage1.data, paper_stage1.loss)
+    assert (finetune.data.height, finetune.data.width) == (240, 320)
+    assert finetune.loss == config_lib.paper().loss
+    assert stage1.seed != finetune.seed
+    for stage in (stage1, finetune):
+        assert stage.optim.decay_steps + stage.optim.warmup_steps == stage.num_steps
+        assert stage.photometric.gamma == 0.5
+
+
+def test_a_config_file_function_is_named_after_a_colon_and_a_missing_one_is_a_clear_error():
+    from usp_jax import config as config_lib
+
+    with pytest.raises(ValueError, match="defines no nothing()"):
+        config_lib.load(f"{EXPERIMENTS / 'fast.py'}:nothing")
+    with pytest.raises(FileNotFoundError, match="neither a preset"):
+        config_lib.load(f"{EXPERIMENTS / 'absent.py'}:finetune")
+
+
+def test_compare_prints_the_rotation_table_of_every_method_in_30_degree_ranges_up_to_180(
+        tmp_path, monkeypatch, capsys):
+    import cv2
+
+    compare = load("compare")
+    image = np.zeros((60, 80, 3), np.uint8)
+    angles = {2: 5.0, 3: -40.0, 4: 95.0, 5: 170.0, 6: -180.0}
+    (tmp_path / "v_a").mkdir()
+    for k in (1, *angles):
+        cv2.imwrite(str(tmp_path / "v_a" / f"{k}.ppm"), image)
+    for k, angle in angles.items():
+        h = np.vstack([cv2.getRotationMatrix2D((39.5, 29.5), angle, 1.0), [0, 0, 1]])
+        np.savetxt(tmp_path / "v_a" / f"H_1_{k}", h)
+    methods = ("UnsuperPoint", "ORB", "SIFT")
+    rows = [_pair_row(m, "v", k, 1.0 if m == "SIFT" else 9.0, scene="v_a")
+            for m in methods for k in angles]
+    table = compare.by_rotation(rows, tmp_path)
+    assert list(table) == list(methods)
+    for ranges in table.values():
+        assert list(ranges) == ["0-30", "30-60", "90-120", "150-180"]  # empty ranges left out
+        assert [s["pairs"] for s in ranges.values()] == [1, 1, 1, 2]
+    assert table["SIFT"]["150-180"]["ha3"] == 1.0 and table["ORB"]["150-180"]["ha3"] == 0.0
+    # The command prints one row per method and range.
+    results = tmp_path / "results.json"
+    results.write_text(json.dumps({"pairs": rows}))
+    monkeypatch.setattr(sys, "argv", ["compare.py", str(results), "--rotation", str(tmp_path)])
+    compare.main()
+    printed = capsys.readouterr().out.split("| rotation (deg) |")[1]
+    for method in methods:
+        for label in ("0-30", "30-60", "90-120", "150-180"):
+            assert f"| {method} | {label} | " in printed
+
+
+def test_upright_pairs_keep_the_fine_rotation_ranges():
+    compare = load("compare")
+    assert compare.rotation_ranges([3.0, -25.0, 37.0]) == compare.ROTATION_RANGES
+    assert compare.rotation_ranges([3.0, -61.0]) == compare.WIDE_ROTATION_RANGES
+
