@@ -480,3 +480,28 @@ def test_upright_pairs_keep_the_fine_rotation_ranges():
     assert compare.rotation_ranges([3.0, -25.0, 37.0]) == compare.ROTATION_RANGES
     assert compare.rotation_ranges([3.0, -61.0]) == compare.WIDE_ROTATION_RANGES
 
+
+def test_the_rotation_config_is_the_fast_recipe_turned_over_the_full_circle():
+    from usp_jax import config as config_lib
+    from usp_jax.model import fast_config
+
+    stages = [config_lib.load(str(EXPERIMENTS / spec)) for spec in ("rotation.py", "rotation.py:finetune")]
+    for cfg in stages:
+        assert cfg.model == fast_config() and cfg.data.context_window
+        assert cfg.homography.rotation_range == (-180.0, 180.0)
+        assert cfg.homography.rotation_distribution == "uniform"
+    assert [(c.data.height, c.data.width) for c in stages] == [(128, 160), (240, 320)]
+    doc = " ".join(load("rotation").__doc__.replace("\\\n", " ").split())  # as a shell reads it
+    for command in (
+        "usp-jax train --config experiments/rotation.py --data data/corpus/train --workdir runs/rotation",
+        "usp-jax export --checkpoint runs/rotation --save-weights runs/rotation-stage1.npz",
+        "usp-jax train --config experiments/rotation.py:finetune --init runs/rotation-stage1.npz "
+        "--data data/corpus/train --workdir runs/rotation-finetune",
+        "usp-jax export --checkpoint runs/rotation-finetune --save-weights usp_jax/weights/rotation.npz",
+    ):
+        assert command in doc
+    # Measured with 4,000 draws (training_rotations.py): half the pairs turn by 90 degrees or more.
+    training_rotations = load("training_rotations")
+    angles = training_rotations.rotations(stages[0].homography, 128, 160, draws=400,
+                                          window=stages[0].data.example_shape[:2])
+    assert 0.4 < np.mean(np.abs(angles) >= 90) < 0.6
