@@ -12,7 +12,7 @@ root::
         --init runs/stage7.npz --data data/corpus/train \
         --workdir runs/corpus-cpu-stage10
 
-    usp-jax export --checkpoint runs/corpus-cpu-stage10 --weights runs/stage10.npz
+    usp-jax export --checkpoint runs/corpus-cpu-stage10 --save-weights runs/stage10.npz
 
 (``runs/stage7.npz`` is stage 7's float16 export, ``cpu_photos_stage7.py``.) 1,500 steps, 60 min
 on 2 CPU cores (0.42 steps/s). Training d_k 1.60 -> 1.53 px, K 624 -> 636 pairs per image (first
@@ -20,7 +20,7 @@ and last 500 steps). On the 160 held-out pairs, its float16 export against stage
 bootstrap, RESULTS.md): matching score +1.5% (240x320, also with ``upsample=2``) and +2.2%
 (480x640) and LE +1.0 to +1.4% beyond the pairs' noise at all three; illumination pairs' HA@3
 0.950 -> 0.975 at 240x320; 480x640 HA@1 -12.8%, the rest within the noise. graf1 -> graf3 at
-480x640: 1.10 px (stage 7 3.44). Shipped as ``usp_jax/weights/unsuperpoint.npz``.
+480x640: 1.10 px (stage 7 3.44). Shipped as ``usp_jax/weights/paper.npz``.
 """
 
 import pathlib

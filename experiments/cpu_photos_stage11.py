@@ -12,9 +12,9 @@ all 10 (``experiments/compare.py --rotation``). From the repository root::
         --init runs/stage10.npz --data data/corpus/train \
         --workdir runs/corpus-cpu-stage11
 
-    usp-jax export --checkpoint runs/corpus-cpu-stage11 --weights runs/stage11.npz
+    usp-jax export --checkpoint runs/corpus-cpu-stage11 --save-weights runs/stage11.npz
 
-(``runs/stage10.npz`` is stage 10's float16 export, shipped as ``usp_jax/weights/unsuperpoint.npz``.)
+(``runs/stage10.npz`` is stage 10's float16 export, shipped as ``usp_jax/weights/paper.npz``.)
 1,500 steps, 60 min on 2 CPU cores (0.42 steps/s). Training d_k 1.70 -> 1.64 px, K 458 -> 471 pairs
 per image (first and last 500 steps; stage 10 ended at 1.53 px and 636: the smaller patch shows
 less of image A). On the 160 held-out pairs, its float16 export against stage 10's (paired

@@ -9,10 +9,10 @@ fresh Adam moments settle before full-size steps. The cosine is laid out over 14
 the run stops at 12,500, where the rate is down to 1.4e-5 (3% of its peak), so that the evaluation
 fitted the machine time (1.74 steps/s on average, 2 h). From the repository root::
 
-    usp-jax export --checkpoint runs/corpus-cpu --weights runs/stage1.npz
+    usp-jax export --checkpoint runs/corpus-cpu --save-weights runs/stage1.npz
     usp-jax train --config experiments/cpu_photos_stage2.py --init runs/stage1.npz \
         --data data/corpus/train --workdir runs/corpus-cpu-stage2
-    usp-jax export --checkpoint runs/corpus-cpu-stage2 --weights usp_jax/weights/unsuperpoint.npz
+    usp-jax export --checkpoint runs/corpus-cpu-stage2 --save-weights usp_jax/weights/paper.npz
 """
 
 import pathlib

@@ -8,10 +8,10 @@ step-limited, not capacity-limited. The restart peaks lower than stage 2's (3e-4
 (stage 2's d_k rose from 1.87 to 1.92 px during its warm restart). 10,000 steps, 102 min on 2
 CPU cores (1.63 steps/s). From the repository root::
 
-    usp-jax export --checkpoint runs/corpus-cpu-stage2 --weights runs/stage2.npz
+    usp-jax export --checkpoint runs/corpus-cpu-stage2 --save-weights runs/stage2.npz
     usp-jax train --config experiments/cpu_photos_stage3.py --init runs/stage2.npz \
         --data data/corpus/train --workdir runs/corpus-cpu-stage3
-    usp-jax export --checkpoint runs/corpus-cpu-stage3 --weights usp_jax/weights/unsuperpoint.npz
+    usp-jax export --checkpoint runs/corpus-cpu-stage3 --save-weights usp_jax/weights/paper.npz
 """
 
 import pathlib

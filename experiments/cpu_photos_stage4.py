@@ -10,7 +10,7 @@ previous minimum. From the repository root::
     usp-jax train --config experiments/cpu_photos_stage4.py \
         --init runs/stage3.npz --data data/corpus/train \
         --workdir runs/corpus-cpu-stage4
-    usp-jax export --checkpoint runs/corpus-cpu-stage4 --weights runs/stage4.npz
+    usp-jax export --checkpoint runs/corpus-cpu-stage4 --save-weights runs/stage4.npz
 """
 
 import pathlib

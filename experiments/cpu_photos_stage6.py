@@ -14,7 +14,7 @@ From the repository root::
     usp-jax train --config experiments/cpu_photos_stage6.py \
         --init runs/stage3.npz --data data/corpus/train \
         --workdir runs/corpus-cpu-stage6
-    usp-jax export --checkpoint runs/corpus-cpu-stage6 --weights runs/stage6.npz
+    usp-jax export --checkpoint runs/corpus-cpu-stage6 --save-weights runs/stage6.npz
 
 2,400 steps, 92 min on 2 CPU cores (0.43 steps/s). Against stage 3 on the 160 held-out pairs
 (paired bootstrap, RESULTS.md): repeatability +0.8% and localisation error -1.8% (both beyond

@@ -7,7 +7,7 @@ this stage asks whether more of the same moves the held-out numbers. From the re
     usp-jax train --config experiments/cpu_photos_stage7.py \
         --init runs/stage6.npz --data data/corpus/train \
         --workdir runs/corpus-cpu-stage7
-    usp-jax export --checkpoint runs/corpus-cpu-stage7 --weights usp_jax/weights/unsuperpoint.npz
+    usp-jax export --checkpoint runs/corpus-cpu-stage7 --save-weights usp_jax/weights/paper.npz
 
 (``runs/stage6.npz`` is stage 6's float16 export, ``cpu_photos_stage6.py``.) 1,700 steps, 68 min
 on 2 CPU cores (0.42 steps/s). The training statistics stayed flat (d_k 1.51 px, K 640 pairs

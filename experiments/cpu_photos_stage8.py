@@ -6,7 +6,7 @@ same way; this stage asks whether another annealed cycle keeps paying. From the 
     usp-jax train --config experiments/cpu_photos_stage8.py \
         --init runs/stage7.npz --data data/corpus/train \
         --workdir runs/corpus-cpu-stage8
-    usp-jax export --checkpoint runs/corpus-cpu-stage8 --weights runs/stage8.npz
+    usp-jax export --checkpoint runs/corpus-cpu-stage8 --save-weights runs/stage8.npz
 
 (``runs/stage7.npz`` is stage 7's float16 export, ``cpu_photos_stage7.py``, then the shipped
 weights.) 1,800 steps, 63 min on 2 CPU cores (0.50 steps/s). Training

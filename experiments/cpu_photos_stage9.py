@@ -12,7 +12,7 @@ and lifts the enlarged ones. From the repository root::
         --init runs/stage7.npz --data data/corpus/train \
         --workdir runs/corpus-cpu-stage9
 
-    usp-jax export --checkpoint runs/corpus-cpu-stage9 --weights runs/stage9.npz
+    usp-jax export --checkpoint runs/corpus-cpu-stage9 --save-weights runs/stage9.npz
 
 (``runs/stage7.npz`` is stage 7's float16 export, ``cpu_photos_stage7.py``, then the shipped
 weights.) 1,500 steps, 58 min on 2 CPU cores (0.43 steps/s).

@@ -176,7 +176,11 @@ def test_detection_on_a_smaller_copy_returns_keypoints_in_the_originals_pixels(m
         (["match", "{tmp}/absent.png", "{tmp}/other.png"], "absent.png"),
         (["make-pairs", "--images", "{tmp}/void", "--out", "{tmp}/o"], "void"),
         (["make-pairs", "--images", "{tmp}", "--out", "{tmp}/o", "--rotation", "200"], "[0, 180]"),
-        (["export", "--checkpoint", "{tmp}/none", "--weights", "{tmp}/w.npz"], "none"),
+        (["export", "--checkpoint", "{tmp}/none", "--save-weights", "{tmp}/w.npz"], "none"),
+        (["detect", "{tmp}/absent.png", "--weights", "vgg"], "the shipped weights are paper, fast"),
+        (["benchmark", "--weights", "tiny"], "unknown weights 'tiny'"),
+        (["demo", "--out", "{tmp}/d", "--weights", "best"], "unknown weights 'best'"),
+        (["export", "--weights", "x", "--save-weights", "{tmp}/w.npz"], "unknown weights 'x'"),
     ],
 )
 def test_user_errors_are_one_line_with_exit_status_2(argv, message, tmp_path, capsys):
@@ -190,7 +194,7 @@ def test_export_writes_weights_and_an_artifact_that_load_without_the_model(workd
     from usp_jax import inference
 
     weights, artifact = tmp_path / "w.npz", tmp_path / "detector.bin"
-    assert main(["export", "--checkpoint", str(workdir), "--weights", str(weights),
+    assert main(["export", "--checkpoint", str(workdir), "--save-weights", str(weights),
                  "--artifact", str(artifact), "--res", "64x96", "--top", "10"]) == 0
     config, variables = inference.load_weights(weights)
     assert config.descriptor_dim == 16 and weights.stat().st_size > 0
@@ -253,7 +257,49 @@ def test_sizes_and_counts_below_one_are_rejected_by_the_parser(argv, message, ca
 def test_demo_runs_offline_on_the_shipped_weights_and_writes_its_pngs(tmp_path, capsys):
     assert main(["demo", "--out", str(tmp_path)]) == 0
     out = capsys.readouterr().out
-    assert "the weights shipped with usp-jax" in out and "never saw" in out
+    assert "weights shipped with usp-jax" in out and "never saw" in out
     assert all(name in out for name in ("UnsuperPoint", "ORB", "SIFT"))
     assert len(list(tmp_path.glob("UnsuperPoint_v_*_keypoints.png"))) == 1
     assert len(list(tmp_path.glob("UnsuperPoint_v_*_matches.png"))) == 1
+
+
+@pytest.mark.parametrize("command", [["detect", "a.png"], ["match", "a.png", "b.png"],
+                                     ["evaluate", "--hpatches", "p"], ["benchmark"], ["export"]])
+def test_weights_name_and_checkpoint_exclude_each_other(command, capsys):
+    with pytest.raises(SystemExit) as exit_info:
+        parse_args([*command, "--weights", "fast", "--checkpoint", "runs/x"])
+    assert exit_info.value.code == 2
+    assert "not allowed with argument" in capsys.readouterr().err
+
+
+def test_detect_with_named_weights_uses_that_network(photo, tmp_path, capsys):
+    image = tmp_path / "photo.png"
+    cv2.imwrite(str(image), cv2.cvtColor(photo[:240, :320], cv2.COLOR_RGB2BGR))
+    out = {}
+    for name in ("paper", "fast"):
+        out[name] = tmp_path / f"{name}.json"
+        assert main(["detect", str(image), "--weights", name, "--top", "50",
+                     "--json", str(out[name])]) == 0
+    dims = {name: len(json.loads(path.read_text())["descriptors"][0]) for name, path in out.items()}
+    assert dims == {"paper": 256, "fast": 128}
+
+
+def test_verbose_flag_shows_usp_jax_info_lines_although_imports_install_a_root_handler(tmp_path):
+    import subprocess
+    import sys
+
+    def train(*flags):
+        # A fresh interpreter: the package's imports run before the CLI configures logging.
+        return subprocess.run(
+            [sys.executable, "-m", "usp_jax", *flags, "train", "--data", "sample", "--workdir",
+             str(tmp_path / "w"), "--config", "cpu", "--steps", str(len(flags) + 1),
+             "--no-progress", *TINY],
+            capture_output=True, text=True, timeout=600,
+        )
+
+    quiet = train()
+    assert quiet.returncode == 0 and "INFO" not in quiet.stderr
+    verbose = train("-v")  # resumes the first run
+    assert verbose.returncode == 0, verbose.stderr
+    assert "INFO usp_jax.train: resumed from step 1" in verbose.stderr
+    assert "INFO absl" not in verbose.stderr

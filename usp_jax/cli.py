@@ -57,16 +57,26 @@ def _add_upsample(parser) -> None:
                              " paper's detector; 2: finer keypoints for 4x the compute)")
 
 
+def _add_weights_name(parser) -> None:
+    parser.add_argument("--weights", metavar="NAME",
+                        help="shipped weights by name: paper (the paper's network) or fast"
+                             " (4.4x the images/s); default: the better on the held-out pairs")
+
+
 def _add_checkpoint(parser) -> None:
-    parser.add_argument("--checkpoint", metavar="PATH",
-                        help="training workdir, one of its checkpoints, or a .npz weights file"
-                             " from `usp-jax export --weights` (default: the shipped weights)")
+    group = parser.add_mutually_exclusive_group()
+    group.add_argument("--checkpoint", metavar="PATH",
+                       help="training workdir, one of its checkpoints, or a .npz weights file"
+                            " from `usp-jax export --save-weights` (default: the shipped weights)")
+    _add_weights_name(group)
 
 
 def _load_detector(args, **options):
     from usp_jax.inference import Detector
 
     options.setdefault("upsample", getattr(args, "upsample", 1))
+    if getattr(args, "weights", None):
+        return Detector.pretrained(args.weights, **options)
     return Detector.load(getattr(args, "checkpoint", None) or None, **options)
 
 
@@ -158,8 +168,12 @@ def cmd_make_pairs(args) -> None:
 
 def cmd_benchmark(args) -> None:
     from usp_jax import benchmark
+    from usp_jax.inference import PRETRAINED, Detector
 
-    detector = _load_detector(args)
+    if args.weights or args.checkpoint:
+        detector = _load_detector(args)
+    else:  # every shipped network, side by side
+        detector = {name: Detector.pretrained(name, upsample=args.upsample) for name in PRETRAINED}
     result = benchmark.benchmark(
         detector, resolutions=tuple(args.res), batch_sizes=tuple(args.batch), top_n=args.top,
         repeats=args.repeats, include_opencv=not args.no_opencv,
@@ -252,17 +266,17 @@ def cmd_export(args) -> None:
     from usp_jax import inference
 
     detector = _load_detector(args)
-    if args.weights:
-        inference.save_weights(args.weights, detector.variables, detector.model_config)
-        print(f"wrote {args.weights} (float16)")
+    if args.save_weights:
+        inference.save_weights(args.save_weights, detector.variables, detector.model_config)
+        print(f"wrote {args.save_weights} (float16)")
     if args.artifact:
         detector = inference.Detector(detector.variables, detector.model_config,
                                       top_n=args.top, nms_radius=args.nms,
                                       upsample=detector.upsample)
         inference.export(detector, args.artifact, *args.res)
         print(f"wrote {args.artifact} (jax.export, uint8 [b, {args.res[0]}, {args.res[1]}, 3])")
-    if not (args.weights or args.artifact):
-        raise ValueError("nothing to export: give --weights FILE.npz and/or --artifact FILE")
+    if not (args.save_weights or args.artifact):
+        raise ValueError("nothing to export: give --save-weights FILE.npz and/or --artifact FILE")
 
 
 # Package photos held out of the shipped weights' training corpus (experiments/build_corpus.py).
@@ -275,17 +289,19 @@ def cmd_demo(args) -> None:
     import skimage.data
 
     from usp_jax import evaluation
-    from usp_jax.inference import Detector
+    from usp_jax.inference import DEFAULT_PRETRAINED, Detector
     from usp_jax.pairs import make_pairs
 
     start = time.perf_counter()
     out = pathlib.Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     try:
-        detector = Detector.pretrained()
-        print("model: the weights shipped with usp-jax")
+        detector = Detector.pretrained(args.weights)
+        print(f"model: the {args.weights or DEFAULT_PRETRAINED!r} weights shipped with usp-jax")
         about = "photos the shipped model never saw"
     except FileNotFoundError:
+        if args.weights:  # asked for by name: say it is missing rather than train instead
+            raise
         detector = _demo_training(out / "train")
         about = "photos the short training saw too (no shipped weights)"
     photos_dir = pathlib.Path(skimage.data.__file__).parent
@@ -407,7 +423,9 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("export", help="float16 weights file or a jax.export inference artifact")
     _add_checkpoint(p)
-    p.add_argument("--weights", help="write a float16 .npz (what Detector.pretrained() loads)")
+    p.add_argument("--save-weights", metavar="FILE",
+                   help="write a float16 .npz (what --checkpoint, train --init and"
+                        " Detector.load take)")
     p.add_argument("--artifact", help="write a serialised jax.export detector")
     p.add_argument("--res", type=_resolution, default=(240, 320), help="artifact input HxW")
     p.add_argument("--top", type=_positive, default=1000, help="artifact keeps this many points")
@@ -417,6 +435,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("demo", help="the whole pipeline on bundled photos, offline, in minutes")
     p.add_argument("--out", default=str(pathlib.Path(tempfile.gettempdir()) / "usp-jax-demo"))
+    _add_weights_name(p)
     p.set_defaults(func=cmd_demo)
     return parser
 
@@ -438,8 +457,12 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
 
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
-    logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING,
-                        format="%(levelname)s %(name)s: %(message)s")
+    # force: importing orbax and grain (through usp_jax) installs a root handler, which would
+    # make basicConfig a no-op and -v silent. -v is about usp-jax's own steps; the libraries'
+    # INFO lines (orbax logs every save) stay hidden.
+    logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s",
+                        force=True)
+    logging.getLogger("usp_jax").setLevel(logging.INFO if args.verbose else logging.WARNING)
     from usp_jax.train import TrainingDiverged
 
     try:
