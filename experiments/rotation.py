@@ -24,47 +24,22 @@ To see how it fares by rotation, make rotated held-out pairs (``usp-jax make-pai
 RESULT.json --rotation PAIRS``.
 """
 
-from usp_jax import config as config_lib
-from usp_jax.model import fast_config
+import pathlib
 
-_COMMON = [
-    "photometric.gamma=0.5",
-    "photometric.brightness=0.5",
-    "photometric.contrast=0.5",
-    "checkpoint_every=500",
-    "log_every=20",
-    "keep_checkpoints=2",
-    # What rotation needs, and nothing else.
+from usp_jax import config as config_lib
+
+_FAST = str(pathlib.Path(__file__).with_name("fast.py"))
+# What rotation needs, and nothing else.
+_ROTATION = [
     "data.context_window=True",
     "homography.rotation_range=(-180.0, 180.0)",
     "homography.rotation_distribution=uniform",
 ]
 
 
-def _fast(overrides: list[str]) -> config_lib.Config:
-    base = config_lib.override(config_lib.paper(), _COMMON + overrides)
-    return config_lib.dataclasses.replace(base, model=fast_config())
-
-
 def get_config() -> config_lib.Config:
-    return _fast([
-        "seed=23",
-        "data.height=128",
-        "data.width=160",
-        "data.scale_range=(0.25, 0.5)",
-        "loss.lambda_d=62.5",
-        "loss.alpha_desc=0.004",
-        "num_steps=18000",
-        "optim.warmup_steps=300",
-        "optim.decay_steps=17700",
-    ])
+    return config_lib.override(config_lib.load(_FAST), _ROTATION)
 
 
 def finetune() -> config_lib.Config:
-    return _fast([
-        "seed=24",
-        "optim.learning_rate=3e-4",
-        "optim.warmup_steps=100",
-        "num_steps=1500",
-        "optim.decay_steps=1400",
-    ])
+    return config_lib.override(config_lib.load(f"{_FAST}:finetune"), _ROTATION)
