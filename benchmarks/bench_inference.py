@@ -31,7 +31,7 @@ import numpy as np
 
 import common
 from usp_jax import baselines, benchmark
-from usp_jax.inference import Detector
+from usp_jax.inference import PRETRAINED, Detector
 from usp_jax.model import fast_config, init_variables
 
 NETWORKS = ("paper", "fast")
@@ -41,13 +41,12 @@ OPENCV = ("ORB", "AKAZE", "SIFT")
 def load_network(name: str, top_n: int) -> tuple[Detector, str]:
     """The shipped weights, or random ones of the same network where they are not shipped
     (speed does not depend on the weights' values)."""
-    try:
+    if name in PRETRAINED:
         return Detector.pretrained(name, top_n=top_n), "shipped weights"
-    except FileNotFoundError:
-        config = fast_config()
-        return Detector(init_variables(jax.random.PRNGKey(0), config), config, top_n=top_n), (
-            "random weights"
-        )
+    config = fast_config()
+    return Detector(init_variables(jax.random.PRNGKey(0), config), config, top_n=top_n), (
+        "random weights"
+    )
 
 
 def detector_gflop(detector: Detector, images: np.ndarray) -> float:

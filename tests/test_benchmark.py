@@ -68,7 +68,8 @@ def test_an_upsampled_detector_is_recorded_and_named_in_the_table(detector):
 
 
 def test_named_detectors_are_timed_side_by_side_in_one_table(detector):
-    fast_config_ = fast_config(backbone_channels=(4, 8, 8, 16), head_channels=8, descriptor_dim=8)
+    fast_config_ = fast_config(backbone_channels=(4, 8, 8, 16), head_channels=8,
+                         descriptor_head_channels=8, descriptor_dim=8)
     fast = Detector(init_variables(jax.random.PRNGKey(0), fast_config_), fast_config_)
     result = benchmark({"paper": detector, "fast": fast}, resolutions=((32, 48),),
                        batch_sizes=(1,), repeats=1, warmup=0, include_opencv=False)

@@ -15,7 +15,8 @@ from usp_jax.model import ModelConfig, UnsuperPoint, fast_config, init_variables
 SMALL = ModelConfig(
     backbone_channels=(8, 8, 8, 8, 16, 16, 16, 16), head_channels=16, descriptor_dim=16
 )
-SMALL_FAST = fast_config(backbone_channels=(4, 8, 8, 16), head_channels=8, descriptor_dim=16)
+SMALL_FAST = fast_config(backbone_channels=(4, 8, 8, 16), head_channels=8,
+                         descriptor_head_channels=8, descriptor_dim=16)
 
 
 def calibrated_variables(config, photo):
@@ -271,6 +272,7 @@ def test_pretrained_loads_shipped_weights_by_name_or_says_how_to_train(
     variables, fast_variables, image, tmp_path, monkeypatch
 ):
     monkeypatch.setattr(inference, "WEIGHTS_DIR", tmp_path)
+    monkeypatch.setattr(inference, "PRETRAINED", {"paper": "paper.npz", "fast": "fast.npz"})
     with pytest.raises(FileNotFoundError, match="usp-jax train"):
         Detector.pretrained()
     inference.save_weights(tmp_path / "paper.npz", variables, SMALL)
@@ -287,6 +289,7 @@ def test_pretrained_loads_shipped_weights_by_name_or_says_how_to_train(
 
 
 def test_every_named_weights_file_ships_with_the_package():
+    assert "paper" in inference.PRETRAINED
     for name, file in inference.PRETRAINED.items():
         assert (inference.WEIGHTS_DIR / file).is_file(), name
     assert inference.DEFAULT_PRETRAINED in inference.PRETRAINED

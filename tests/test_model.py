@@ -117,7 +117,8 @@ def test_bfloat16_compute_keeps_float32_outputs():
     assert pred.scores.dtype == jnp.float32 and pred.descriptors.dtype == jnp.float32
 
 
-SMALL_FAST = fast_config(backbone_channels=(4, 8, 8, 16), head_channels=8, descriptor_dim=8)
+SMALL_FAST = fast_config(backbone_channels=(4, 8, 8, 16), head_channels=8,
+                         descriptor_head_channels=8, descriptor_dim=8)
 
 
 @pytest.mark.parametrize("height, width", [(32, 48), (40, 56)])  # even and odd cell grids
