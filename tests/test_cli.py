@@ -172,7 +172,6 @@ def test_detection_on_a_smaller_copy_returns_keypoints_in_the_originals_pixels(m
         (["evaluate", "--hpatches", "{tmp}/nothing", "--baselines-only"], "nothing"),
         (["detect", "{tmp}/absent.png", "--checkpoint", "{tmp}/none"], "none"),
         (["evaluate", "--hpatches", "{tmp}", "--checkpoint", "{tmp}/gone.npz"], "gone.npz"),
-        (["detect", "{tmp}/absent.png", "--nms", "-1"], "nms_radius"),
         (["match", "{tmp}/absent.png", "{tmp}/other.png"], "absent.png"),
         (["make-pairs", "--images", "{tmp}/void", "--out", "{tmp}/o"], "void"),
         (["make-pairs", "--images", "{tmp}", "--out", "{tmp}/o", "--rotation", "200"], "[0, 180]"),

@@ -123,7 +123,7 @@ def test_non_finite_loss_stops_with_a_message_and_keeps_the_last_good_checkpoint
     train.fit(tiny_config(), tmp_path, progress=False, num_steps=2)
     exploding = tiny_config(**{"optim.learning_rate": 1e38})
     with pytest.raises(train.TrainingDiverged, match="non-finite at step .*checkpoint: step 2"):
-        train.fit(exploding, tmp_path, progress=False, num_steps=6)
+        train.fit(exploding, tmp_path, progress=False, num_steps=6, allow_config_change=True)
     mngr = checkpoint.manager(tmp_path / "checkpoints")
     assert mngr.latest_step() == 2
     restored = checkpoint.restore_state(mngr, train.create_state(tiny_config()))

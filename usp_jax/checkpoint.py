@@ -61,6 +61,14 @@ def resolve(path: pathlib.Path | str) -> tuple[pathlib.Path, int]:
     return path, step
 
 
+def load_config(path: pathlib.Path | str) -> config_lib.Config:
+    """The config saved with the latest checkpoint under ``path`` (see :func:`resolve`)."""
+    directory, step = resolve(path)
+    with ocp.CheckpointManager(directory) as mngr:
+        saved = mngr.restore(step, args=ocp.args.Composite(config=ocp.args.JsonRestore()))
+    return config_lib.from_dict(saved["config"])
+
+
 def load_variables(path: pathlib.Path | str) -> tuple[config_lib.Config, dict]:
     """For inference: (config, {"params", "batch_stats"}) of the latest checkpoint under ``path``.
 

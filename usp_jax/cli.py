@@ -1,14 +1,19 @@
 """The ``usp-jax`` command: train, evaluate, make-pairs, benchmark, detect, match, export and demo.
 
-Every failure a user can cause (a missing folder, a corrupt image, a bad override) ends in one
-line on stderr and exit status 2, never a traceback.
+Every failure a user can cause (a missing folder, a corrupt image, a bad override, an
+unwritable output, a full disk) ends in one line on stderr and exit status 2, never a
+traceback; options are checked before anything is written. An internal error (a bug) still
+shows its traceback.
 """
 
 from __future__ import annotations
 
 import argparse
+import errno
 import json
 import logging
+import math
+import os
 import pathlib
 import sys
 import tempfile
@@ -17,8 +22,16 @@ import time
 import numpy as np
 
 _USER_ERRORS = (FileNotFoundError, ValueError, NotADirectoryError, IsADirectoryError)
+# OSErrors a user's paths or disk cause: reported in one line like the errors above.
+_USER_ERRNOS = frozenset({
+    errno.ENOENT, errno.EACCES, errno.EPERM, errno.EROFS, errno.ENOSPC, errno.EDQUOT,
+    errno.EEXIST, errno.ENOTDIR, errno.EISDIR, errno.ENAMETOOLONG, errno.EFBIG, errno.ELOOP,
+})
 # Longest side `detect` and `match` run the network at (1280x960 for a 4:3 photo).
 MAX_SIDE = 1280
+# The largest --upsample and --res side: beyond, the activations alone outgrow any memory.
+MAX_UPSAMPLE = 8
+MAX_RESOLUTION = 16384
 
 
 def _resolution(text: str) -> tuple[int, int]:
@@ -28,7 +41,29 @@ def _resolution(text: str) -> tuple[int, int]:
         raise argparse.ArgumentTypeError(f"resolution {text!r} is not HxW, e.g. 240x320") from None
     if min(height, width) < 8:  # one 8x8 cell at least
         raise argparse.ArgumentTypeError(f"resolution {text!r} needs H and W of at least 8 px")
+    if max(height, width) > MAX_RESOLUTION:
+        raise argparse.ArgumentTypeError(
+            f"resolution {text!r} exceeds {MAX_RESOLUTION} px on a side"
+        )
     return height, width
+
+
+def _radius(text: str) -> float:
+    """An NMS radius: a finite number of pixels >= 0 (``1e9`` is fine: one point survives)."""
+    try:
+        value = float(text)
+    except ValueError:
+        value = math.nan
+    if not (math.isfinite(value) and value >= 0):
+        raise argparse.ArgumentTypeError(f"{text!r} is not a radius in px (a finite number >= 0)")
+    return value
+
+
+def _upsample(text: str) -> int:
+    value = _positive(text)
+    if value > MAX_UPSAMPLE:
+        raise argparse.ArgumentTypeError(f"{text!r} is above {MAX_UPSAMPLE}")
+    return value
 
 
 def _integer_at_least(minimum: int, kind: str):
@@ -52,15 +87,15 @@ _non_negative = _integer_at_least(0, "non-negative")
 
 def _add_upsample(parser) -> None:
     # SIFT doubles its input for the same reason: the positions come back finer (RESULTS.md).
-    parser.add_argument("--upsample", type=_positive, default=1, metavar="S",
+    parser.add_argument("--upsample", type=_upsample, default=1, metavar="S",
                         help="run the network on the image enlarged S times (default 1, the"
                              " paper's detector; 2: finer keypoints for 4x the compute)")
 
 
 def _add_weights_name(parser) -> None:
     parser.add_argument("--weights", metavar="NAME",
-                        help="shipped weights by name: paper (the paper's network) or fast"
-                             " (4.4x the images/s); default: the better on the held-out pairs")
+                        help="shipped weights by name (usp_jax.inference.PRETRAINED; an unknown"
+                             " name lists them); default: the best on the held-out pairs")
 
 
 def _add_checkpoint(parser) -> None:
@@ -69,6 +104,36 @@ def _add_checkpoint(parser) -> None:
                        help="training workdir, one of its checkpoints, or a .npz weights file"
                             " from `usp-jax export --save-weights` (default: the shipped weights)")
     _add_weights_name(group)
+
+
+def _check_output_file(path: str | None, what: str) -> None:
+    """Raises ValueError unless ``path`` can be written as a file (checked before any work)."""
+    if not path:
+        return
+    target = pathlib.Path(path).expanduser()
+    if target.is_dir():
+        raise ValueError(f"{what} {path} is a folder, not a file")
+    parent = target.absolute().parent
+    if not parent.is_dir():
+        raise ValueError(f"{what} {path}: folder {parent} does not exist")
+    if not os.access(parent, os.W_OK | os.X_OK) or (target.exists() and not os.access(target, os.W_OK)):
+        raise ValueError(f"{what} {path} is not writable")
+
+
+def _check_output_folder(path: str | None, what: str) -> None:
+    """Raises ValueError unless ``path`` is, or can be made as, a writable folder."""
+    if not path:
+        return
+    target = pathlib.Path(path).expanduser().absolute()
+    if target.exists() and not target.is_dir():
+        raise ValueError(f"{what} {path} exists and is not a folder")
+    existing = target
+    while not existing.exists():
+        existing = existing.parent
+    if not existing.is_dir():
+        raise ValueError(f"{what} {path}: {existing} is not a folder")
+    if not os.access(existing, os.W_OK | os.X_OK):
+        raise ValueError(f"{what} {path}: {existing} is not writable")
 
 
 def _load_detector(args, **options):
@@ -88,14 +153,21 @@ def cmd_train(args) -> None:
     overrides = list(args.overrides)
     if args.data:
         overrides.insert(0, f"data.source={args.data}")
-    if args.steps is not None:
-        overrides.insert(0, f"num_steps={args.steps}")
     if args.init:
         overrides.insert(0, f"init_weights={args.init}")
     cfg = config_lib.override(cfg, overrides)
+    # --steps N is num_steps=N; both at once must agree (neither silently beats the other).
+    if args.steps is not None:
+        given = [o.split("=", 1)[1].strip() for o in overrides
+                 if o.split("=", 1)[0].strip() == "num_steps"]
+        if given and cfg.num_steps != args.steps:
+            raise ValueError(
+                f"--steps {args.steps} and num_steps={given[-1]} disagree; give one of them"
+            )
+        cfg = config_lib.override(cfg, [f"num_steps={args.steps}"])
     print(f"training {args.config} config on {cfg.data.source} into {args.workdir}")
     state = train.fit(cfg, args.workdir, progress=not args.no_progress,
-                      distributed=args.distributed)
+                      distributed=args.distributed, allow_config_change=args.allow_config_change)
     print(f"done: step {int(state.step)}; checkpoints in {pathlib.Path(args.workdir) / 'checkpoints'}")
 
 
@@ -116,6 +188,8 @@ def _methods(args, detector):
 def cmd_evaluate(args) -> None:
     from usp_jax import evaluation
 
+    _check_output_file(args.json, "--json")
+    _check_output_folder(args.plots, "--plots")
     detector = None if args.baselines_only else _load_detector(args)
     height, width = args.res
     methods = _methods(args, detector)
@@ -160,6 +234,7 @@ def _plot_first_pair(method, root, out_dir, res, top, nms):
 def cmd_make_pairs(args) -> None:
     from usp_jax.pairs import make_pairs
 
+    _check_output_folder(args.out, "--out")
     scenes = make_pairs(args.images, args.out, seed=args.seed, size=args.size,
                         num_views=args.views, rotation=args.rotation,
                         rotation_angles=args.rotation_angles, progress=not args.no_progress)
@@ -170,6 +245,7 @@ def cmd_benchmark(args) -> None:
     from usp_jax import benchmark
     from usp_jax.inference import PRETRAINED, Detector
 
+    _check_output_file(args.json, "--json")
     if args.weights or args.checkpoint:
         detector = _load_detector(args)
     else:  # every shipped network, side by side
@@ -211,6 +287,8 @@ def _detect_at_most(detector, image, max_side: int, top_n: int):
 def cmd_detect(args) -> None:
     from usp_jax import data, plotting
 
+    _check_output_file(args.out, "--out")
+    _check_output_file(args.json, "--json")
     detector = _load_detector(args, nms_radius=args.nms)
     image = data.read_image(args.image)
     features = _detect_at_most(detector, image, args.max_side, args.top)
@@ -229,6 +307,8 @@ def cmd_detect(args) -> None:
 def cmd_match(args) -> None:
     from usp_jax import data, evaluation, plotting
 
+    _check_output_file(args.out, "--out")
+    _check_output_file(args.json, "--json")
     detector = _load_detector(args, nms_radius=args.nms)
     image1, image2 = data.read_image(args.image1), data.read_image(args.image2)
     features1, features2 = (
@@ -265,6 +345,10 @@ def cmd_match(args) -> None:
 def cmd_export(args) -> None:
     from usp_jax import inference
 
+    if not (args.save_weights or args.artifact):
+        raise ValueError("nothing to export: give --save-weights FILE.npz and/or --artifact FILE")
+    _check_output_file(args.save_weights, "--save-weights")
+    _check_output_file(args.artifact, "--artifact")
     detector = _load_detector(args)
     if args.save_weights:
         inference.save_weights(args.save_weights, detector.variables, detector.model_config)
@@ -275,8 +359,6 @@ def cmd_export(args) -> None:
                                       upsample=detector.upsample)
         inference.export(detector, args.artifact, *args.res)
         print(f"wrote {args.artifact} (jax.export, uint8 [b, {args.res[0]}, {args.res[1]}, 3])")
-    if not (args.save_weights or args.artifact):
-        raise ValueError("nothing to export: give --save-weights FILE.npz and/or --artifact FILE")
 
 
 # Package photos held out of the shipped weights' training corpus (experiments/build_corpus.py).
@@ -293,6 +375,7 @@ def cmd_demo(args) -> None:
     from usp_jax.pairs import make_pairs
 
     start = time.perf_counter()
+    _check_output_folder(args.out, "--out")
     out = pathlib.Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     try:
@@ -330,8 +413,16 @@ def _demo_training(workdir: pathlib.Path):
     return Detector.from_checkpoint(workdir)
 
 
+class _Parser(argparse.ArgumentParser):
+    """argparse with its errors in one line (the usage is one ``-h`` away), exit status 2."""
+
+    def error(self, message: str):
+        text = " ".join(message.split())
+        self.exit(2, f"{self.prog}: error: {text} (see {self.prog} -h)\n")
+
+
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    parser = _Parser(
         prog="usp-jax", description="UnsuperPoint keypoints in JAX: train, evaluate, benchmark."
     )
     parser.add_argument("-v", "--verbose", action="store_true", help="log details")
@@ -341,10 +432,15 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--data", help="image folder, tfds:NAME[:SPLIT], or 'sample' (bundled photos)")
     p.add_argument("--workdir", required=True, help="checkpoints, config.json, metrics, TensorBoard")
     p.add_argument("--config", default="paper", help="preset (paper, cpu) or experiments/*.py file")
-    p.add_argument("--steps", type=_positive, help="train up to this step (overrides num_steps)")
+    p.add_argument("--steps", type=_positive,
+                   help="train up to this step (num_steps=N; giving both, they must agree)")
     p.add_argument("--init", help="start from these weights (.npz from `usp-jax export`)")
     p.add_argument("--distributed", action="store_true",
                    help="multi-host: call jax.distributed.initialize() first")
+    p.add_argument("--allow-config-change", action="store_true",
+                   help="resume a workdir although settings differ from its config.json (the"
+                        " change is logged to config_changes.jsonl); without it such a resume"
+                        " is refused, naming the keys")
     p.add_argument("--no-progress", action="store_true")
     p.add_argument("overrides", nargs="*", metavar="KEY=VALUE",
                    help="config overrides, e.g. loss.alpha_uni_xy=50 data.height=120")
@@ -397,7 +493,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--top", type=_positive, default=500)
     # Spread points condition a homography or pose better: radius 4 cut the corner error of
     # the held-out viewpoint pairs by a third (experiments/RESULTS.md).
-    p.add_argument("--nms", type=float, default=0.0,
+    p.add_argument("--nms", type=_radius, default=0.0,
                    help="NMS radius in px, default 0 (try 4 for homography or pose estimation)")
     p.add_argument("--max-side", type=_non_negative, default=MAX_SIDE, metavar="PX",
                    help=f"detect on a copy at most this long (default {MAX_SIDE}; 0: native size);"
@@ -412,7 +508,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("image2")
     _add_checkpoint(p)
     p.add_argument("--top", type=_positive, default=1000)
-    p.add_argument("--nms", type=float, default=4.0,
+    p.add_argument("--nms", type=_radius, default=4.0,
                    help="NMS radius in px, default 4 (spread points condition a homography better)")
     p.add_argument("--max-side", type=_non_negative, default=MAX_SIDE, metavar="PX",
                    help=f"detect on copies at most this long (default {MAX_SIDE}; 0: native size)")
@@ -429,7 +525,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--artifact", help="write a serialised jax.export detector")
     p.add_argument("--res", type=_resolution, default=(240, 320), help="artifact input HxW")
     p.add_argument("--top", type=_positive, default=1000, help="artifact keeps this many points")
-    p.add_argument("--nms", type=int, default=0, help="artifact NMS radius in px")
+    p.add_argument("--nms", type=_radius, default=0.0, help="artifact NMS radius in px")
     _add_upsample(p)
     p.set_defaults(func=cmd_export)
 
@@ -455,7 +551,28 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     return args
 
 
+def _user_error(command: str, message: str) -> None:
+    """One line on stderr, however long the message (messages may quote multi-line values)."""
+    text = " ".join(message.split()) or "failed"
+    print(f"usp-jax {command}: error: {text}", file=sys.stderr)
+
+
 def main(argv: list[str] | None = None) -> int:
+    """Runs the command; returns its exit status (0, 2 for a user error, 130 if interrupted).
+
+    Run as the program (``argv`` None), a user error ends the process at once after its one
+    line: the native threads of a checkpoint save that failed (a full disk) may still call back
+    into a closed asyncio loop while the interpreter shuts down, each printing a traceback.
+    """
+    code = _main(argv)
+    if argv is None and code == 2:
+        sys.stdout.flush()
+        sys.stderr.flush()
+        os._exit(code)
+    return code
+
+
+def _main(argv: list[str] | None) -> int:
     args = parse_args(argv)
     # force: importing orbax and grain (through usp_jax) installs a root handler, which would
     # make basicConfig a no-op and -v silent. -v is about usp-jax's own steps; the libraries'
@@ -463,12 +580,22 @@ def main(argv: list[str] | None = None) -> int:
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s",
                         force=True)
     logging.getLogger("usp_jax").setLevel(logging.INFO if args.verbose else logging.WARNING)
-    from usp_jax.train import TrainingDiverged
+    # Orbax logs a failed background save (a full disk) as ERRORs with tracebacks from each of
+    # its threads; train reports it again as one line naming the last complete checkpoint.
+    if not args.verbose:
+        logging.getLogger("absl").setLevel(logging.CRITICAL)
+    from usp_jax.train import TrainingDiverged, WorkdirError
 
     try:
         args.func(args)
-    except (*_USER_ERRORS, TrainingDiverged) as err:
-        print(f"usp-jax {args.command}: error: {err}", file=sys.stderr)
+    except (*_USER_ERRORS, TrainingDiverged, WorkdirError) as err:
+        named = isinstance(err, OSError) and err.filename and err.strerror
+        _user_error(args.command, f"{err.filename}: {err.strerror}" if named else str(err))
+        return 2
+    except OSError as err:
+        if err.errno not in _USER_ERRNOS:
+            raise
+        _user_error(args.command, f"{err.filename}: {err.strerror}" if err.filename else str(err))
         return 2
     except KeyboardInterrupt:
         print(f"usp-jax {args.command}: interrupted", file=sys.stderr)

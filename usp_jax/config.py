@@ -11,7 +11,10 @@ import ast
 import dataclasses
 import importlib.util
 import json
+import math
+import os
 import pathlib
+import types
 import typing
 from typing import Any
 
@@ -84,7 +87,11 @@ PRESETS = {"paper": paper, "cpu": cpu}
 
 def load(spec: str) -> Config:
     """A preset name (``paper``, ``cpu``), a Python file defining ``get_config()``, or
-    ``FILE.py:NAME`` for another function of that file (a recipe's later stages)."""
+    ``FILE.py:NAME`` for another function of that file (a recipe's later stages).
+
+    Raises ValueError in one line for a file that does not run (syntax error, failing import,
+    an exception in the function) or whose function does not return a valid :class:`Config`.
+    """
     if spec in PRESETS:
         return PRESETS[spec]()
     file, _, function = spec.partition(".py:")
@@ -95,12 +102,189 @@ def load(spec: str) -> Config:
         raise FileNotFoundError(
             f"config {spec!r} is neither a preset ({', '.join(PRESETS)}) nor an existing file"
         )
-    module_spec = importlib.util.spec_from_file_location(path.stem, path)
-    module = importlib.util.module_from_spec(module_spec)
-    module_spec.loader.exec_module(module)
+    try:
+        module_spec = importlib.util.spec_from_file_location(path.stem, path)
+        if module_spec is None or module_spec.loader is None:
+            raise ValueError(f"config file {file} is not a Python file (it must end in .py)")
+        module = importlib.util.module_from_spec(module_spec)
+        module_spec.loader.exec_module(module)
+    except SyntaxError as error:
+        raise ValueError(
+            f"config file {file} has a syntax error at line {error.lineno}: {error.msg}"
+        ) from error
+    except ValueError:
+        raise
+    except Exception as error:  # the user's file failed: an import, a typo, anything it runs
+        raise ValueError(f"config file {file} failed to run: {_one_line(error)}") from error
     if not callable(getattr(module, function, None)):
         raise ValueError(f"config file {file} defines no {function}()")
-    return getattr(module, function)()
+    try:
+        config = getattr(module, function)()
+    except Exception as error:
+        raise ValueError(f"config file {file}: {function}() failed: {_one_line(error)}") from error
+    if not isinstance(config, Config):
+        raise ValueError(
+            f"config file {file}: {function}() returned {type(config).__name__}, not a"
+            " usp_jax.config.Config"
+        )
+    try:
+        return validate(config)
+    except ValueError as error:
+        raise ValueError(f"config file {file}: {error}") from None
+
+
+def _one_line(error: BaseException) -> str:
+    text = str(error).strip().splitlines()
+    return f"{type(error).__name__}: {text[0]}" if text else type(error).__name__
+
+
+# ---------------------------------------------------------------------------------------------
+# Validation: every field's type and range, where a config is made (``load``, ``override``) and
+# again before a run starts (``train.check_config``).
+
+_POSITIVE, _NON_NEGATIVE, _FRACTION = (1, None), (0, None), (0, 1)
+#: Ranges (inclusive; None: unbounded) of the fields whose type alone does not bound them. Floats
+#: must be finite everywhere; tuples of numbers are checked element by element.
+RANGES = {
+    "batch_size": _POSITIVE,
+    "num_steps": _POSITIVE,
+    "seed": (0, 2**32 - 1),
+    "checkpoint_every": _POSITIVE,
+    "keep_checkpoints": _POSITIVE,
+    "log_every": _POSITIVE,
+    "model.backbone_channels": _POSITIVE,
+    "model.head_channels": _POSITIVE,
+    "model.descriptor_dim": _POSITIVE,
+    "model.leaky_relu_slope": _NON_NEGATIVE,
+    "model.position_init_scale": _NON_NEGATIVE,
+    "model.batch_norm_momentum": _FRACTION,
+    "data.height": (8, None),
+    "data.width": (8, None),
+    "data.num_workers": _POSITIVE,
+    "data.prefetch": _POSITIVE,
+    "data.shuffle_seed": (0, 2**32 - 1),
+    "loss.lambda_d": _NON_NEGATIVE,
+    "loss.eps_correspond": (1e-9, None),
+    "loss.eps_descriptor": (1e-9, None),
+    **{f"loss.{name}": _NON_NEGATIVE for name in (
+        "alpha_usp", "alpha_position", "alpha_score", "alpha_uni_xy", "alpha_score_mean",
+        "alpha_uni_score", "alpha_desc", "alpha_decorr",
+    )},
+}
+# The network maps each 8x8 cell to one point: crops must be whole cells.
+_MULTIPLE_OF_CELL = ("data.height", "data.width")
+_DTYPES = ("float32", "bfloat16", "float16")
+
+
+def _type_name(annotation: Any) -> str:
+    args = typing.get_args(annotation)
+    if typing.get_origin(annotation) in (typing.Union, types.UnionType):
+        return " or ".join("None" if a is type(None) else _type_name(a) for a in args)
+    return getattr(annotation, "__name__", None) or str(annotation).replace("typing.", "")
+
+
+def _fits(value: Any, annotation: Any) -> bool:
+    """Whether ``value`` has the type ``annotation`` names (ints count as floats; bools as
+    neither)."""
+    origin, args = typing.get_origin(annotation), typing.get_args(annotation)
+    if origin in (typing.Union, types.UnionType):
+        return any(_fits(value, arg) for arg in args)
+    if annotation is type(None):
+        return value is None
+    if annotation is bool:
+        return isinstance(value, bool)
+    if annotation is int:
+        return isinstance(value, int) and not isinstance(value, bool)
+    if annotation is float:
+        return isinstance(value, (int, float)) and not isinstance(value, bool)
+    if annotation is str:
+        return isinstance(value, str)
+    if origin is tuple or annotation is tuple:
+        if not isinstance(value, tuple):
+            return False
+        if not args:
+            return True
+        if len(args) == 2 and args[1] is Ellipsis:
+            return all(_fits(v, args[0]) for v in value)
+        return len(args) == len(value) and all(_fits(v, a) for v, a in zip(value, args))
+    return True
+
+
+def _numbers(value: Any) -> list:
+    if isinstance(value, tuple):
+        return [v for item in value for v in _numbers(item)]
+    if isinstance(value, (int, float)) and not isinstance(value, bool):
+        return [value]
+    return []
+
+
+def _check_node(node: Any, prefix: str) -> None:
+    hints = typing.get_type_hints(type(node))
+    for field in dataclasses.fields(node):
+        key, value, annotation = prefix + field.name, getattr(node, field.name), hints[field.name]
+        if dataclasses.is_dataclass(annotation):
+            if not isinstance(value, annotation):
+                raise ValueError(
+                    f"config key {key!r} is a section ({annotation.__name__}), got {value!r};"
+                    f" set its fields instead, e.g. {key}.{dataclasses.fields(annotation)[0].name}"
+                    "=..."
+                )
+            _check_node(value, key + ".")
+            continue
+        if not _fits(value, annotation):
+            raise ValueError(
+                f"config key {key}={value!r} is not of type {_type_name(annotation)}"
+            )
+        numbers = _numbers(value)
+        if any(not math.isfinite(v) for v in numbers):
+            raise ValueError(f"config key {key}={value!r} is not a finite number")
+        low, high = RANGES.get(key, (None, None))
+        for v in numbers:
+            if (low is not None and v < low) or (high is not None and v > high):
+                bound = f"in [{low}, {high}]" if high is not None else f">= {low}"
+                raise ValueError(f"config key {key}={value!r} must be {bound}")
+        if key in _MULTIPLE_OF_CELL and value % 8:
+            raise ValueError(
+                f"config key {key}={value!r} must be a multiple of 8 (one point per 8x8 cell)"
+            )
+        if key == "model.dtype" and value not in _DTYPES:
+            raise ValueError(f"config key {key}={value!r} must be one of {', '.join(_DTYPES)}")
+
+
+def validate(config: Config) -> Config:
+    """Checks every field's type and range (``RANGES``; floats finite, crops whole 8x8 cells)
+    and returns ``config``; raises ValueError naming the first bad key."""
+    if not isinstance(config, Config):
+        raise ValueError(f"expected a usp_jax.config.Config, got {type(config).__name__}")
+    _check_node(config, "")
+    return config
+
+
+def validate_model(model_config: ModelConfig) -> ModelConfig:
+    """:func:`validate` for a ModelConfig alone (the one a weights file carries)."""
+    if not isinstance(model_config, ModelConfig):
+        raise ValueError(f"expected a ModelConfig, got {type(model_config).__name__}")
+    _check_node(model_config, "model.")
+    return model_config
+
+
+def flatten(config: Config) -> dict[str, Any]:
+    """``{"model.descriptor_dim": 256, ...}``: every leaf field by its override key."""
+
+    def walk(node: dict, prefix: str):
+        for name, value in node.items():
+            if isinstance(value, dict):
+                yield from walk(value, f"{prefix}{name}.")
+            else:
+                yield prefix + name, tuple(value) if isinstance(value, list) else value
+
+    return dict(walk(to_dict(config), ""))
+
+
+def differences(old: Config, new: Config) -> dict[str, tuple[Any, Any]]:
+    """``{key: (old value, new value)}`` for every field that differs, by override key."""
+    before, after = flatten(old), flatten(new)
+    return {key: (before.get(key), after.get(key)) for key in after if before.get(key) != after.get(key)}
 
 
 def _coerce(text: str, annotation: Any, where: str) -> Any:
@@ -128,8 +312,8 @@ def override(config: Config, assignments: list[str]) -> Config:
         if "=" not in assignment:
             raise ValueError(f"override {assignment!r} is not of the form key=value")
         key, text = assignment.split("=", 1)
-        config = _set(config, key.strip().split("."), text.strip(), key)
-    return config
+        config = _set(config, key.strip().split("."), text.strip(), key.strip())
+    return validate(config)
 
 
 def _set(node: Any, path: list[str], text: str, key: str) -> Any:
@@ -144,6 +328,12 @@ def _set(node: Any, path: list[str], text: str, key: str) -> Any:
         if not dataclasses.is_dataclass(current):
             raise ValueError(f"config key {key!r}: {path[0]} has no sub-fields")
         return dataclasses.replace(node, **{path[0]: _set(current, path[1:], text, key)})
+    if dataclasses.is_dataclass(current):
+        names = ", ".join(f.name for f in dataclasses.fields(current))
+        raise ValueError(
+            f"config key {key!r} is a section, not a value; set one of its fields ({names}),"
+            f" e.g. {key}.{dataclasses.fields(current)[0].name}=..."
+        )
     return dataclasses.replace(node, **{path[0]: _coerce(text, hints[path[0]], key)})
 
 
@@ -168,7 +358,18 @@ def from_dict(data: dict, cls: type = Config) -> Any:
 
 
 def save(config: Config, path: pathlib.Path) -> None:
-    path.write_text(json.dumps(to_dict(config), indent=2) + "\n")
+    """Writes ``path`` atomically: a crash or a full disk leaves the old file or the new one,
+    never a part of either."""
+    path = pathlib.Path(path)
+    temporary = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    try:
+        with open(temporary, "w") as file:
+            file.write(json.dumps(to_dict(config), indent=2) + "\n")
+            file.flush()
+            os.fsync(file.fileno())
+        os.replace(temporary, path)
+    finally:
+        temporary.unlink(missing_ok=True)
 
 
 def read(path: pathlib.Path) -> Config:
@@ -179,10 +380,12 @@ __all__ = [
     "Config",
     "OptimConfig",
     "cpu",
+    "differences",
     "load",
     "override",
     "paper",
     "read",
     "save",
     "to_dict",
+    "validate",
 ]

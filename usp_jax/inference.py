@@ -19,6 +19,7 @@ import dataclasses
 import functools
 import importlib.resources
 import json
+import math
 import pathlib
 import zipfile
 from collections.abc import Sequence
@@ -33,7 +34,7 @@ import numpy as np
 from usp_jax import checkpoint
 from usp_jax import config as config_lib
 from usp_jax.evaluation import Features, Method
-from usp_jax.model import CELL, ModelConfig, UnsuperPoint, compiler_options
+from usp_jax.model import CELL, ModelConfig, UnsuperPoint, compiler_options, init_variables
 
 #: Folder of the weights that ship inside the package (experiments/RESULTS.md says how each
 #: was trained).
@@ -74,7 +75,13 @@ def save_weights(path: str | pathlib.Path, variables: dict, model_config: ModelC
 
 
 def load_weights(path: str | pathlib.Path) -> tuple[ModelConfig, dict]:
-    """Inverse of :func:`save_weights`: ``(ModelConfig, {"params", "batch_stats"})`` in float32."""
+    """Inverse of :func:`save_weights`: ``(ModelConfig, {"params", "batch_stats"})`` in float32.
+
+    Checks the file before returning anything: its model config is valid, it holds exactly the
+    arrays that config's network has, with their shapes (``jax.eval_shape`` of
+    ``model.init_variables``), and every value is finite. Raises ValueError naming the file and
+    the first bad array.
+    """
     path = pathlib.Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"weights file {path} does not exist")
@@ -88,9 +95,52 @@ def load_weights(path: str | pathlib.Path) -> tuple[ModelConfig, dict]:
     with data:
         if _CONFIG_KEY not in data:
             raise ValueError(f"{path} is not a usp-jax weights file (no {_CONFIG_KEY} entry)")
-        model_config = config_lib.from_dict(json.loads(str(data[_CONFIG_KEY])), ModelConfig)
-        flat = {k: data[k].astype(np.float32) for k in data.files if k != _CONFIG_KEY}
+        try:
+            model_config = config_lib.from_dict(json.loads(str(data[_CONFIG_KEY])), ModelConfig)
+            config_lib.validate_model(model_config)
+        except (ValueError, TypeError, AttributeError) as error:
+            raise ValueError(
+                f"{path}: its {_CONFIG_KEY} entry is not a valid model config"
+                f" ({type(error).__name__}: {str(error).splitlines()[0] if str(error) else ''})"
+            ) from None
+        flat = {}
+        for key in data.files:
+            if key == _CONFIG_KEY:
+                continue
+            try:
+                array = data[key]
+            except (OSError, ValueError, zipfile.BadZipFile) as error:
+                raise ValueError(f"{path}: array {key} is not readable ({type(error).__name__})")
+            if array.dtype.kind not in "fiu":
+                raise ValueError(f"{path}: array {key} holds {array.dtype}, not numbers")
+            flat[key] = array.astype(np.float32)
+    _check_arrays(path, model_config, flat)
     return model_config, flax.traverse_util.unflatten_dict(flat, sep=_SEPARATOR)
+
+
+def _check_arrays(path: pathlib.Path, model_config: ModelConfig, flat: dict) -> None:
+    """Raises ValueError for the first array missing, extra, of the wrong shape or not finite."""
+    abstract = jax.eval_shape(
+        functools.partial(init_variables, config=model_config), jax.random.PRNGKey(0)
+    )
+    expected = flax.traverse_util.flatten_dict(
+        {"params": abstract["params"], "batch_stats": abstract.get("batch_stats", {})},
+        sep=_SEPARATOR,
+    )
+    network = (f"its {model_config.backbone} network (descriptor_dim"
+               f" {model_config.descriptor_dim}, head_channels {model_config.head_channels})")
+    for key, like in expected.items():
+        if key not in flat:
+            raise ValueError(f"{path}: array {key} of {network} is missing")
+        if flat[key].shape != like.shape:
+            raise ValueError(
+                f"{path}: array {key} has shape {flat[key].shape}, {network} needs {like.shape}"
+            )
+    for key, array in flat.items():
+        if key not in expected:
+            raise ValueError(f"{path}: array {key} is not part of {network}")
+        if not np.all(np.isfinite(array)):
+            raise ValueError(f"{path}: array {key} holds NaN or infinite values")
 
 
 # ---------------------------------------------------------------------------------------------
@@ -122,6 +172,11 @@ def _neighbours(values: jax.Array, cells_h: int, cells_w: int, reach: int, fill)
     )
 
 
+#: Largest neighbourhood (in cells each way) :func:`radius_nms` compares cell by cell; beyond,
+#: its memory ((2 reach + 1)^2 M) would grow with the radius, and the greedy loop takes over.
+NEIGHBOUR_REACH = 3
+
+
 def radius_nms(
     keypoints: jax.Array,
     scores: jax.Array,
@@ -130,24 +185,37 @@ def radius_nms(
     cells_w: int,
     radius: float,
     cell: float = CELL,
+    limit: int | None = None,
 ) -> jax.Array:
     """Greedy radius NMS of one image's M candidates (one per cell), the paper's "NMS = 4".
 
     keypoints [M, 2], scores [M], valid [M] bool (row-major cells) -> keep [M] bool. Same result
     as ``evaluation.nms_radius`` on the valid points: by decreasing score (ties: lower index
     first), a point is kept unless a kept point lies within ``radius`` px (inclusive).
+    ``limit``: stop once this many points are kept (the strongest of the full result; for a
+    top-N cut after NMS, N). Raises ValueError for a radius that is negative, NaN or infinite.
 
     ``cell`` is a cell's side in the keypoints' pixels (8; 8 / s for a network run on the image
-    enlarged s times). Two facts make this cheap with fixed shapes. A point stays inside its
-    cell, so points d cells apart are at least ``cell * (d - 1)`` px apart and only cells within
-    ``floor(radius / cell) + 1`` can interact (3x3 cells for radius 4 at 8 px). And the greedy
-    result is the unique fixed point of ``keep_i = valid_i and no kept stronger neighbour``:
-    iterating that map from ``keep = valid`` settles one more level of the dependency chain per
-    step, so the loop stops after (longest chain of suppressions) steps, usually a handful, never
-    more than M.
+    enlarged s times). A point stays inside its cell, so points d cells apart are at least
+    ``cell * (d - 1)`` px apart and only cells within ``floor(radius / cell) + 1`` can interact
+    (3x3 cells for radius 4 at 8 px), never more than the grid. Up to ``NEIGHBOUR_REACH`` cells
+    each way, every cell is compared with those neighbours at once, and the greedy result is the
+    unique fixed point of ``keep_i = valid_i and no kept stronger neighbour``: iterating that
+    map from ``keep = valid`` settles one more level of the dependency chain per step, so the
+    loop stops after (longest chain of suppressions) steps, usually a handful. For a larger
+    radius (or with ``limit``) it runs the greedy order itself, one kept point per step: memory
+    O(M) whatever the radius, and the larger the radius the fewer points, so the fewer steps.
     """
-    reach = int(radius // cell) + 1
+    radius = float(radius)
+    if not (math.isfinite(radius) and radius >= 0):
+        raise ValueError(f"NMS radius must be a finite number >= 0, got {radius}")
     m = scores.shape[0]
+    reach = min(int(radius // cell) + 1, max(cells_h, cells_w) - 1)
+    if reach < 1:  # a single cell: nothing to suppress
+        return jnp.asarray(valid, bool) if limit is None else _greedy_nms(
+            keypoints, scores, valid, radius, limit)
+    if reach > NEIGHBOUR_REACH or limit is not None:
+        return _greedy_nms(keypoints, scores, valid, radius, limit)
 
     def around(values, fill):
         return _neighbours(values, cells_h, cells_w, reach, fill)
@@ -165,6 +233,34 @@ def radius_nms(
         return new, jnp.any(new != keep)
 
     keep, _ = jax.lax.while_loop(lambda state: state[1], step, (valid, jnp.bool_(True)))
+    return keep
+
+
+def _greedy_nms(keypoints, scores, valid, radius: float, limit: int | None) -> jax.Array:
+    """:func:`radius_nms` in the greedy order itself: each step keeps the strongest point not yet
+    suppressed and suppresses every point within ``radius`` of it. O(M) memory; as many steps
+    as points kept (at most ``limit``)."""
+    keypoints, valid = jnp.asarray(keypoints), jnp.asarray(valid, bool)
+    m = scores.shape[0]
+    # Rank in the greedy order: decreasing score, ties by lower index (as a stable argsort).
+    order = jnp.argsort(-jnp.asarray(scores), stable=True)
+    rank = jnp.zeros(m, jnp.int32).at[order].set(jnp.arange(m, dtype=jnp.int32))
+
+    def running(state):
+        _, remaining, count = state
+        going = jnp.any(remaining)
+        return going if limit is None else going & (count < limit)
+
+    def step(state):
+        keep, remaining, count = state
+        best = jnp.argmin(jnp.where(remaining, rank, m))
+        close = jnp.sum((keypoints - keypoints[best]) ** 2, axis=-1) <= radius**2
+        return (keep.at[best].set(True), remaining & ~close & (jnp.arange(m) != best),
+                count + 1)
+
+    keep, _, _ = jax.lax.while_loop(
+        running, step, (jnp.zeros(m, bool), valid, jnp.zeros((), jnp.int32))
+    )
     return keep
 
 
@@ -190,11 +286,15 @@ def _select_points(
     extent = sizes[:, None, ::-1].astype(jnp.float32)  # [B, 1, 2] (width, height)
     inside = (keypoints >= border - 0.5) & (keypoints < extent - 0.5 - border)
     keep = jnp.all(inside, axis=-1)
-    if nms_radius > 0:
-        keep = jax.vmap(radius_nms, in_axes=(0, 0, 0, None, None, None, None))(
-            keypoints, scores, keep, cells_h, cells_w, nms_radius, cell
-        )
     k = cells_h * cells_w if top_n is None else min(top_n, cells_h * cells_w)
+    if nms_radius > 0:
+        # Past the neighbourhood the greedy loop runs, which may stop at the k kept points the
+        # top-k cut below takes anyway.
+        greedy = int(nms_radius // cell) + 1 > NEIGHBOUR_REACH
+        limit = k if greedy and top_n is not None else None
+        keep = jax.vmap(radius_nms, in_axes=(0, 0, 0, None, None, None, None, None))(
+            keypoints, scores, keep, cells_h, cells_w, nms_radius, cell, limit
+        )
     ranked, order = jax.lax.top_k(jnp.where(keep, scores, -jnp.inf), k)
     counts = jnp.minimum(jnp.sum(keep, axis=-1), k)
     return (
@@ -316,9 +416,10 @@ class Detector:
         upsample: int = 1,
     ):
         _check_top_n(top_n)
-        if nms_radius < 0 or border < 0:
+        if not all(math.isfinite(v) and v >= 0 for v in (nms_radius, border)):
             raise ValueError(
-                f"nms_radius and border must be >= 0, got nms_radius={nms_radius}, border={border}"
+                f"nms_radius and border must be finite and >= 0, got nms_radius={nms_radius},"
+                f" border={border}"
             )
         integer = isinstance(upsample, (int, np.integer)) and not isinstance(upsample, bool)
         if not integer or upsample < 1:

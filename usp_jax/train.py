@@ -11,9 +11,13 @@ number, so a resumed run sees exactly the randomness an uninterrupted one would.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import logging
+import os
 import pathlib
+import shutil
+import socket
 import time
 from typing import Any, Callable, Iterator
 
@@ -33,6 +37,28 @@ log = logging.getLogger(__name__)
 
 class TrainingDiverged(RuntimeError):
     """The loss or the gradients became NaN or inf."""
+
+
+class ConfigChanged(ValueError):
+    """A workdir is resumed with settings other than those it was trained with."""
+
+
+class WorkdirError(RuntimeError):
+    """The workdir cannot be used: not a folder, not writable, in use by another run, or a
+    write failed (a full disk) partway."""
+
+
+#: Settings a resumed run may change without ``allow_config_change``: where it stops, how
+#: often it logs and saves, how many checkpoints it keeps and how it reads its photos. None of
+#: them changes what a training step computes.
+RESUMABLE_KEYS = frozenset({
+    "num_steps", "checkpoint_every", "keep_checkpoints", "log_every",
+    "data.num_workers", "data.prefetch", "data.tfds_data_dir",
+})
+#: Held by a running ``fit`` inside its workdir; names the holder's pid and host.
+LOCK_FILE = "train.lock"
+#: One JSON line per resume that changed settings with ``allow_config_change``.
+CONFIG_CHANGES_FILE = "config_changes.jsonl"
 
 
 @flax.struct.dataclass
@@ -63,9 +89,10 @@ def make_optimizer(cfg: config_lib.OptimConfig) -> optax.GradientTransformation:
 
 
 def check_config(config: config_lib.Config) -> None:
-    """Raises ValueError for settings that only make sense together (each section validates
-    itself; ``config.override`` applies one key at a time, so the sections cannot check each
-    other)."""
+    """Raises ValueError for a field of the wrong type or out of range (``config.validate``) and
+    for settings that only make sense together (each section validates itself;
+    ``config.override`` applies one key at a time, so the sections cannot check each other)."""
+    config_lib.validate(config)
     if config.homography.rotation_range is not None and not config.data.context_window:
         raise ValueError(
             f"homography.rotation_range={config.homography.rotation_range} needs "
@@ -300,7 +327,9 @@ class MetricsWriter:
             return
         from tensorboardX import SummaryWriter
 
-        self._jsonl = open(workdir / "metrics.jsonl", "a")
+        path = workdir / "metrics.jsonl"
+        _drop_torn_line(path)
+        self._jsonl = open(path, "a")
         self._tb = SummaryWriter(str(workdir / "tensorboard"))
 
     def write(self, step: int, metrics: dict[str, float]) -> None:
@@ -317,14 +346,26 @@ class MetricsWriter:
             self._tb.close()
 
 
+def _drop_torn_line(path: pathlib.Path) -> None:
+    """Cuts a last line that a kill or a full disk left without its newline."""
+    if not path.is_file() or path.stat().st_size == 0:
+        return
+    text = path.read_bytes()
+    if not text.endswith(b"\n"):
+        with open(path, "r+b") as file:
+            file.truncate(text.rfind(b"\n") + 1)
+
+
 def read_metrics(workdir: str | pathlib.Path) -> list[dict]:
     """The rows :class:`MetricsWriter` appended to ``WORKDIR/metrics.jsonl``, in the order written
     (``[]`` before the first log). A run resumed after a kill logs the steps after its last
-    checkpoint a second time; the later row of a step is the one its kept weights went through."""
+    checkpoint a second time; the later row of a step is the one its kept weights went through.
+    A last line cut short by a kill or a full disk is skipped."""
     path = pathlib.Path(workdir) / "metrics.jsonl"
     if not path.is_file():
         return []
-    return [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
+    complete = path.read_text().split("\n")[:-1]  # text after the last newline is unfinished
+    return [json.loads(line) for line in complete if line.strip()]
 
 
 def _progress_postfix(metrics: dict[str, float], steps_per_s: float, batch_size: int) -> dict:
@@ -374,6 +415,172 @@ def _check_finite(metrics: dict | None, step: int, mngr) -> None:
         )
 
 
+# ---------------------------------------------------------------------------------------------
+# The workdir: checks before anything is written, the lock, the record of the config
+
+
+def _check_workdir_path(workdir: pathlib.Path) -> None:
+    """Raises WorkdirError unless ``workdir`` is, or can be made as, a writable folder."""
+    if workdir.exists() and not workdir.is_dir():
+        raise WorkdirError(f"workdir {workdir} exists and is not a folder")
+    existing = workdir
+    while not existing.exists():
+        existing = existing.parent
+    if not existing.is_dir():
+        raise WorkdirError(f"workdir {workdir}: {existing} is not a folder")
+    if not os.access(existing, os.W_OK | os.X_OK):
+        raise WorkdirError(f"workdir {workdir}: {existing} is not writable")
+    for name in ("config.json", "checkpoints", "metrics.jsonl", "tensorboard"):
+        path = workdir / name
+        if path.exists() and not os.access(path, os.W_OK):
+            raise WorkdirError(f"workdir {workdir}: {path} is not writable")
+
+
+class _WorkdirLock:
+    """An exclusive ``flock`` on ``WORKDIR/train.lock``, which names its holder (pid, host,
+    start time). The kernel drops it when the process dies, so a killed run leaves no stale
+    lock; a clean exit removes the file."""
+
+    def __init__(self, workdir: pathlib.Path):
+        import fcntl
+
+        self.path = workdir / LOCK_FILE
+        while True:
+            fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o644)
+            try:
+                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except BlockingIOError:
+                holder = os.read(fd, 4096).decode(errors="replace").strip() or "another process"
+                os.close(fd)
+                raise WorkdirError(
+                    f"workdir {workdir} is in use by {holder}; wait for that run to end or stop it"
+                ) from None
+            except OSError:
+                os.close(fd)
+                raise
+            # The previous holder may have removed the file between our open and our lock.
+            try:
+                same = os.fstat(fd).st_ino == os.stat(self.path).st_ino
+            except FileNotFoundError:
+                same = False
+            if same:
+                break
+            os.close(fd)
+        self.fd = fd
+        started = time.strftime("%Y-%m-%d %H:%M:%S")
+        os.ftruncate(fd, 0)
+        os.write(fd, f"pid {os.getpid()} on host {socket.gethostname()} (since {started})\n".encode())
+
+    def release(self) -> None:
+        if self.fd is None:
+            return
+        self.path.unlink(missing_ok=True)
+        os.close(self.fd)
+        self.fd = None
+
+
+def recorded_config(workdir: pathlib.Path) -> config_lib.Config | None:
+    """The config a workdir's run was started with: ``config.json``, or the latest checkpoint's
+    when that file is missing; None for a workdir no run has written."""
+    path = workdir / "config.json"
+    if path.is_file():
+        try:
+            return config_lib.read(path)
+        except (ValueError, TypeError) as error:  # JSONDecodeError is a ValueError
+            raise WorkdirError(
+                f"{path} is not a readable usp-jax config ({type(error).__name__}); the run's"
+                " record is damaged"
+            ) from None
+    if (workdir / "checkpoints").is_dir():
+        from usp_jax import checkpoint
+
+        try:
+            return checkpoint.load_config(workdir)
+        except FileNotFoundError:
+            return None
+    return None
+
+
+def _state_layout(config: config_lib.Config) -> Any:
+    """Shapes and dtypes of the TrainState ``config`` trains (nothing is computed)."""
+    blank = dataclasses.replace(config, init_weights="")
+    return jax.eval_shape(lambda: create_state(blank))
+
+
+def _layout_mismatch(old: config_lib.Config, new: config_lib.Config) -> str | None:
+    """Where the state ``new`` trains differs from the one ``old`` saved, or None."""
+    old_leaves, old_tree = jax.tree_util.tree_flatten_with_path(_state_layout(old))
+    new_leaves, new_tree = jax.tree_util.tree_flatten_with_path(_state_layout(new))
+    if old_tree != new_tree:
+        return "the state holds other arrays (model or optimizer structure)"
+    for (path, a), (_, b) in zip(old_leaves, new_leaves):
+        if a.shape != b.shape or a.dtype != b.dtype:
+            return f"{jax.tree_util.keystr(path)} is {a.shape} in the checkpoints, {b.shape} here"
+    return None
+
+
+def _describe(changes: dict) -> str:
+    return ", ".join(f"{key}: {old!r} -> {new!r}" for key, (old, new) in changes.items())
+
+
+def _check_resume(
+    workdir: pathlib.Path, previous: config_lib.Config, config: config_lib.Config,
+    allow_config_change: bool,
+) -> dict:
+    """The rule for resuming (README, "Resuming"): returns the changed keys, or raises."""
+    changes = config_lib.differences(previous, config)
+    material = {k: v for k, v in changes.items() if k not in RESUMABLE_KEYS}
+    if material and not allow_config_change:
+        raise ConfigChanged(
+            f"workdir {workdir} was trained with other settings ({_describe(material)}); rerun"
+            " with those, use a new --workdir, or pass --allow-config-change to continue it with"
+            " these"
+        )
+    mismatch = _layout_mismatch(previous, config) if material else None
+    if mismatch:
+        raise ConfigChanged(
+            f"workdir {workdir} cannot continue with {_describe(material)}: its checkpoints do"
+            f" not fit this network or optimizer ({mismatch}); use a new --workdir (and"
+            " --init WEIGHTS.npz to start from its weights)"
+        )
+    if material:
+        log.warning("continuing %s with changed settings: %s", workdir, _describe(material))
+    elif changes:
+        log.info("resuming %s with %s", workdir, _describe(changes))
+    return material
+
+
+def _first_line(error: BaseException) -> str:
+    lines = str(error).strip().splitlines()
+    return lines[0] if lines else type(error).__name__
+
+
+def _write_failed(error: OSError, what: str, workdir: pathlib.Path, mngr) -> WorkdirError:
+    latest = mngr.latest_step() if mngr is not None else None
+    where = error.filename or workdir
+    kept = f"; the last complete checkpoint is step {latest}" if latest is not None else ""
+    return WorkdirError(f"{what}: {where}: {error.strerror or _first_line(error)}{kept}")
+
+
+def _os_error_in(error: BaseException) -> OSError | None:
+    """The OSError behind ``error``, or None. Orbax's writes (TensorStore) fail with a
+    ValueError that carries the system's error code in its text: ``[os_error_code='28']``."""
+    import re
+
+    seen = set()
+    while error is not None and id(error) not in seen:
+        seen.add(id(error))
+        if isinstance(error, OSError) and error.errno is not None:
+            return error
+        code = re.search(r"os_error_code='(\d+)'", str(error))
+        if code:
+            path = re.search(r'(?:file|Failed writing:) "([^"]+)"', str(error))
+            number = int(code.group(1))
+            return OSError(number, os.strerror(number), path.group(1) if path else None)
+        error = error.__cause__ or error.__context__
+    return None
+
+
 def fit(
     config: config_lib.Config,
     workdir: str | pathlib.Path,
@@ -381,12 +588,21 @@ def fit(
     progress: bool = True,
     distributed: bool = False,
     num_steps: int | None = None,
+    allow_config_change: bool = False,
 ) -> TrainState:
     """Trains (or resumes) the run in ``workdir`` up to ``num_steps`` (default config.num_steps).
 
-    Re-running with the same workdir resumes from its latest complete checkpoint. Writes
-    ``config.json``, ``checkpoints/``, ``metrics.jsonl`` and ``tensorboard/`` into workdir.
-    Raises ``TrainingDiverged`` on a non-finite loss, keeping the last good checkpoint.
+    Re-running with the same workdir resumes from its latest complete checkpoint. A workdir
+    trained with other settings is refused (``ConfigChanged``, naming the keys) unless
+    ``allow_config_change``; the keys of ``RESUMABLE_KEYS`` (the step count, logging and
+    checkpoint intervals, data loading) may always change, and a network or optimizer whose
+    arrays do not fit the checkpoints never continues. Everything is checked before the
+    workdir is created or changed; ``config.json`` is (re)written only once the run starts.
+    A lock on ``WORKDIR/train.lock`` keeps a second run out (``WorkdirError`` naming the holder).
+
+    Writes ``config.json``, ``checkpoints/``, ``metrics.jsonl`` and ``tensorboard/`` into workdir.
+    Raises ``TrainingDiverged`` on a non-finite loss, keeping the last good checkpoint, and
+    ``WorkdirError`` when a write fails (a full disk), naming the last complete checkpoint.
     ``distributed=True`` calls ``jax.distributed.initialize()`` (multi-host: each process loads
     its own slice of every global batch).
     """
@@ -399,10 +615,14 @@ def fit(
     workdir = pathlib.Path(workdir).expanduser().absolute()
     num_steps = config.num_steps if num_steps is None else num_steps
     check_config(config)
+    if isinstance(num_steps, bool) or not isinstance(num_steps, (int, np.integer)) or num_steps < 1:
+        raise ValueError(f"num_steps must be a positive integer, got {num_steps!r}")
     if config.batch_size % jax.device_count():
         raise ValueError(
             f"batch_size {config.batch_size} is not divisible by the {jax.device_count()} devices"
         )
+    is_main = jax.process_index() == 0
+    _check_workdir_path(workdir)
     # What can reject the inputs (the --init weights, the data path) runs before the workdir is
     # written, so a bad argument leaves no half-made run behind to be resumed later.
     initial = create_state(config)
@@ -413,60 +633,124 @@ def fit(
         process_index=jax.process_index(),
         process_count=jax.process_count(),
     )
-    workdir.mkdir(parents=True, exist_ok=True)
-    mesh = data_mesh()
-    is_main = jax.process_index() == 0
-    if is_main:
-        config_lib.save(config, workdir / "config.json")
-
-    mngr = checkpoint.manager(workdir / "checkpoints", keep=config.keep_checkpoints)
-    replicated = NamedSharding(mesh, P())
-    batch_sharding = NamedSharding(mesh, P("data"))
-    state = jax.device_put(initial, replicated)
-    if mngr.latest_step() is not None:
-        state = checkpoint.restore_state(mngr, state)
-        log.info("resumed from step %d", int(state.step))
-    start = int(state.step)
+    created = not workdir.exists()
+    lock = mngr = None
+    try:
+        try:
+            workdir.mkdir(parents=True, exist_ok=True)
+            lock = _WorkdirLock(workdir) if is_main else None
+        except OSError as error:
+            raise WorkdirError(
+                f"workdir {workdir}: {error.strerror or _first_line(error)}"
+            ) from None
+        previous = recorded_config(workdir)
+        changes = {}
+        if previous is not None:
+            changes = _check_resume(workdir, previous, config, allow_config_change)
+        mesh = data_mesh()
+        replicated = NamedSharding(mesh, P())
+        batch_sharding = NamedSharding(mesh, P("data"))
+        state = jax.device_put(initial, replicated)
+        mngr = checkpoint.manager(workdir / "checkpoints", keep=config.keep_checkpoints)
+        if mngr.latest_step() is not None:
+            latest = mngr.latest_step()
+            try:
+                state = checkpoint.restore_state(mngr, state)
+            except Exception as error:  # a damaged checkpoint: one line, the cause chained
+                raise WorkdirError(
+                    f"cannot restore checkpoint step {latest} of {workdir}:"
+                    f" {_first_line(error)}"
+                ) from error
+            log.info("resumed from step %d", int(state.step))
+        start = int(state.step)
+        if is_main:  # the run starts: only now is its record (re)written
+            if previous is None or previous != config:
+                config_lib.save(config, workdir / "config.json")
+            if changes:
+                with open(workdir / CONFIG_CHANGES_FILE, "a") as file:
+                    file.write(json.dumps({"step": start, "changes": {
+                        k: [old, new] for k, (old, new) in changes.items()}}) + "\n")
+        writer = MetricsWriter(workdir, enabled=is_main)
+    except BaseException as error:
+        if mngr is not None:
+            mngr.close()
+        if lock is not None:
+            lock.release()
+        if created and workdir.is_dir():  # made by this call for a run that never started
+            shutil.rmtree(workdir, ignore_errors=True)
+        cause = _os_error_in(error)
+        if cause is not None and not isinstance(error, (WorkdirError, ConfigChanged)):
+            raise _write_failed(cause, "cannot start the run", workdir, None) from error
+        raise
     step_fn = jit_train_step(config, mesh)
-    writer = MetricsWriter(workdir, enabled=is_main)
     bar = tqdm(
         total=num_steps, initial=start, disable=not (progress and is_main), unit="step",
         dynamic_ncols=True,
     )
     batches: Iterator[np.ndarray] = data.iterate(dataset, start)
     last_log_time, last_log_step = time.perf_counter(), start
-    previous = None
+    previous_metrics = None
     warned: set[str] = set()
+    done = start
     try:
-        for step in range(start, num_steps):
-            local = next(batches)
-            images = jax.make_array_from_process_local_data(batch_sharding, local)
-            state, metrics = step_fn(state, images)
-            done = step + 1
-            # Checking the previous step while this one runs keeps the device busy.
-            _check_finite(previous, done - 1, mngr)
-            previous = metrics
-            if done % config.log_every and done % config.checkpoint_every and done != num_steps:
+        try:
+            for step in range(start, num_steps):
+                local = next(batches)
+                images = jax.make_array_from_process_local_data(batch_sharding, local)
+                state, metrics = step_fn(state, images)
+                done = step + 1
+                # Checking the previous step while this one runs keeps the device busy.
+                _check_finite(previous_metrics, done - 1, mngr)
+                previous_metrics = metrics
+                if done % config.log_every and done % config.checkpoint_every and done != num_steps:
+                    bar.update(1)
+                    continue
+                metrics = {k: float(v) for k, v in jax.device_get(metrics).items()}
+                _check_finite(metrics, done, mngr)
+                now = time.perf_counter()
+                steps_per_s = (done - last_log_step) / max(now - last_log_time, 1e-9)
+                last_log_time, last_log_step = now, done
+                metrics.update({"steps_per_s": steps_per_s, **data.stats(dataset)})
+                # Warn once per kind, after the first steps have had a chance to move away from init.
+                for what, message in (collapse_warnings(metrics) if done >= 100 else {}).items():
+                    if what not in warned:
+                        warned.add(what)
+                        log.warning("step %d: %s", done, message)
+                writer.write(done, metrics)
+                bar.set_postfix(_progress_postfix(metrics, steps_per_s, config.batch_size))
                 bar.update(1)
-                continue
-            metrics = {k: float(v) for k, v in jax.device_get(metrics).items()}
-            _check_finite(metrics, done, mngr)
-            now = time.perf_counter()
-            steps_per_s = (done - last_log_step) / max(now - last_log_time, 1e-9)
-            last_log_time, last_log_step = now, done
-            metrics.update({"steps_per_s": steps_per_s, **data.stats(dataset)})
-            # Warn once per kind, after the first steps have had a chance to move away from init.
-            for what, message in (collapse_warnings(metrics) if done >= 100 else {}).items():
-                if what not in warned:
-                    warned.add(what)
-                    log.warning("step %d: %s", done, message)
-            writer.write(done, metrics)
-            bar.set_postfix(_progress_postfix(metrics, steps_per_s, config.batch_size))
-            bar.update(1)
-            if done % config.checkpoint_every == 0 or done == num_steps:
-                checkpoint.save(mngr, done, state, config)
+                if done % config.checkpoint_every == 0 or done == num_steps:
+                    checkpoint.save(mngr, done, state, config)
+            mngr.wait_until_finished()
+        except (TrainingDiverged, KeyboardInterrupt):
+            raise
+        except Exception as error:
+            cause = _os_error_in(error)
+            if cause is None:
+                raise
+            _settle(mngr)
+            raise _write_failed(cause, f"writing step {done} failed", workdir, mngr) from error
     finally:
-        mngr.wait_until_finished()
+        _settle(mngr)
+        mngr.close()
         bar.close()
-        writer.close()
+        _close_quietly(writer)
+        if lock is not None:
+            lock.release()
     return state
+
+
+def _settle(mngr) -> None:
+    """Waits for a pending save; a failed one leaves only orbax's temporary folder, which
+    ``latest_step`` never reports."""
+    try:
+        mngr.wait_until_finished()
+    except Exception as error:  # reported by the caller's own error, or already raised
+        log.debug("pending checkpoint save failed: %s", _first_line(error))
+
+
+def _close_quietly(writer: MetricsWriter) -> None:
+    try:
+        writer.close()
+    except OSError as error:  # a full disk fails the final flush too
+        log.debug("closing the metrics writer failed: %s", _first_line(error))
