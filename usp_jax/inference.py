@@ -39,11 +39,11 @@ from usp_jax.model import CELL, ModelConfig, UnsuperPoint, compiler_options, ini
 #: Folder of the weights that ship inside the package (experiments/RESULTS.md says how each
 #: was trained).
 WEIGHTS_DIR = importlib.resources.files("usp_jax") / "weights"
-#: Shipped weights by name -> their file in WEIGHTS_DIR. "paper": the paper's VGG network;
-#: "fast": ``model.fast_config()``, 4.4x the images/s.
-PRETRAINED = {"paper": "paper.npz", "fast": "fast.npz"}
-#: What ``Detector.pretrained()`` loads: the better of the named weights on the held-out pairs
-#: (experiments/RESULTS.md, "Fast network").
+#: Shipped weights by name -> their file in WEIGHTS_DIR. "paper": the paper's VGG network. The
+#: fast network (``model.fast_config()``, experiments/fast.py) joins as "fast" once its training
+#: has run its course and beaten the paper network's quality bar (experiments/RESULTS.md).
+PRETRAINED = {"paper": "paper.npz"}
+#: What ``Detector.pretrained()`` loads: the best of the named weights on the held-out pairs.
 DEFAULT_PRETRAINED = "paper"
 
 # Key of the JSON ModelConfig inside a weights file; parameter keys are "params/..." paths.
@@ -472,9 +472,9 @@ class Detector:
 
     @classmethod
     def pretrained(cls, name: str | None = None, **options) -> Detector:
-        """Weights shipped with the package, by name (``PRETRAINED``: "paper", "fast"); None
-        loads ``DEFAULT_PRETRAINED``, the better of them on the held-out pairs. Raises
-        ValueError listing the names for an unknown one."""
+        """Weights shipped with the package, by name (``PRETRAINED``); None loads
+        ``DEFAULT_PRETRAINED``, the best of them on the held-out pairs. Raises ValueError
+        listing the names for an unknown one."""
         name = DEFAULT_PRETRAINED if name is None else name
         if name not in PRETRAINED:
             raise ValueError(
