@@ -28,7 +28,7 @@ import numpy as np
 import optax
 from jax.sharding import NamedSharding, PartitionSpec as P
 
-from usp_jax import augment, geometry, losses
+from usp_jax import augment, geometry, losses, paths
 from usp_jax import config as config_lib
 from usp_jax.model import Predictions, UnsuperPoint, compiler_options, init_variables
 
@@ -421,15 +421,9 @@ def _check_finite(metrics: dict | None, step: int, mngr) -> None:
 
 def _check_workdir_path(workdir: pathlib.Path) -> None:
     """Raises WorkdirError unless ``workdir`` is, or can be made as, a writable folder."""
-    if workdir.exists() and not workdir.is_dir():
-        raise WorkdirError(f"workdir {workdir} exists and is not a folder")
-    existing = workdir
-    while not existing.exists():
-        existing = existing.parent
-    if not existing.is_dir():
-        raise WorkdirError(f"workdir {workdir}: {existing} is not a folder")
-    if not os.access(existing, os.W_OK | os.X_OK):
-        raise WorkdirError(f"workdir {workdir}: {existing} is not writable")
+    problem = paths.folder_problem(workdir)
+    if problem:
+        raise WorkdirError(f"workdir {workdir}{problem}")
     for name in ("config.json", "checkpoints", "metrics.jsonl", "tensorboard"):
         path = workdir / name
         if path.exists() and not os.access(path, os.W_OK):
