@@ -122,18 +122,11 @@ def _check_output_file(path: str | None, what: str) -> None:
 
 def _check_output_folder(path: str | None, what: str) -> None:
     """Raises ValueError unless ``path`` is, or can be made as, a writable folder."""
-    if not path:
-        return
-    target = pathlib.Path(path).expanduser().absolute()
-    if target.exists() and not target.is_dir():
-        raise ValueError(f"{what} {path} exists and is not a folder")
-    existing = target
-    while not existing.exists():
-        existing = existing.parent
-    if not existing.is_dir():
-        raise ValueError(f"{what} {path}: {existing} is not a folder")
-    if not os.access(existing, os.W_OK | os.X_OK):
-        raise ValueError(f"{what} {path}: {existing} is not writable")
+    from usp_jax.paths import folder_problem
+
+    problem = folder_problem(path) if path else None
+    if problem:
+        raise ValueError(f"{what} {path}{problem}")
 
 
 def _load_detector(args, **options):
@@ -568,6 +561,8 @@ def main(argv: list[str] | None = None) -> int:
     if argv is None and code == 2:
         sys.stdout.flush()
         sys.stderr.flush()
+        quiet = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(quiet, 2)  # the error line is out; native threads' late prints are not
         os._exit(code)
     return code
 
