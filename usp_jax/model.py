@@ -49,7 +49,7 @@ class ModelConfig:
     # Width of the descriptor head's hidden conv; 0 = head_channels (the paper's: 256 for all).
     descriptor_head_channels: int = 0
     # Kernel side of that hidden conv (the paper's: 3). The fast network's is 1: its output conv
-    # is 3x3 already, and a 3x3 hidden conv over 192 inputs would cost a quarter of the network.
+    # is 3x3 already, and a 3x3 hidden conv over 192 inputs would add a fifth to its FLOPs.
     descriptor_head_kernel: int = 3
     # C1-C4 of the paper's Table 1 sample the descriptor map at the predicted position; C0 reads
     # the coarse entry of the cell.
@@ -78,8 +78,9 @@ class ModelConfig:
 
 
 def fast_config(**changes) -> ModelConfig:
-    """The fast network: :class:`FastBackbone` (8/24/48/96 channels), 64-channel heads and
-    128-d descriptors; about a sixth of the paper network's FLOPs (``benchmarks/``)."""
+    """The fast network: :class:`FastBackbone` (8/24/48/96 channels), 64-wide score and position
+    heads, a 128-wide 1x1 descriptor head and 128-d descriptors; 2.14 GFLOP per 240x320 image
+    against the paper network's 13.3 (``benchmarks/common.py`` ``forward_gflop``)."""
     fields = dict(backbone="fast", backbone_channels=(8, 24, 48, 96), head_channels=64,
                   descriptor_head_channels=128, descriptor_head_kernel=1, descriptor_dim=128)
     return ModelConfig(**{**fields, **changes})
@@ -240,20 +241,20 @@ class FastBackbone(nn.Module):
     Widths c1, c2, c4, c8 = ``config.backbone_channels`` at resolutions 1, 1/2, 1/4, 1/8. As
     in XFeat and ALIKE, the high resolutions get few channels (a 3x3 conv costs pixels x c_in x
     c_out) and depth goes where pixels are few: one conv at 1/1 and 1/2, a conv and a residual
-    block at 1/4 and 1/8, and a residual block at 1/16 whose output is upsampled and added at
-    1/8 (XFeat's pyramid fusion), which widens the descriptors' receptive field for the cost of
-    a few convs on 300 pixels. Downsampling is the paper's 2x2 max-pool, not a strided conv, so
-    that every 1/8 feature stays centred on its cell (pixel 8c + 3.5, module docstring); a
-    stride-2 3x3 "SAME" conv shifts the grid by half an input pixel per level.
+    block at 1/4 and 1/8, and a residual block at 1/16 whose output is upsampled to 1/8 (XFeat's
+    pyramid fusion), which widens the descriptors' receptive field for the cost of a few convs
+    on 300 pixels. Downsampling is the paper's 2x2 max-pool, not a strided conv, so that every
+    1/8 feature stays centred on its cell (pixel 8c + 3.5, module docstring); a stride-2 3x3
+    "SAME" conv shifts the grid by half an input pixel per level.
 
     images [B, H, W, 3] (normalised) -> (full [B, H, W, c1], cells [B, H/8, W/8, c8],
     context [B, H/8, W/8, 2 c8]): the full-resolution features that the score and position heads
     read through a patch conv (the paper's "skip connections from higher resolution"), the
     cell features, and the cell features beside the upsampled 1/16 context. Concatenated, not
-    added: in a first version that added them, the smooth context outweighed the cells (norm
-    13.9 vs 9.8) and neighbouring cells' descriptors became near copies, which wrecked matching
-    across viewpoints (held-out MS 0.05 on viewpoint pairs) while the cells alone told
-    neighbours apart.
+    added: in a first version that added them, the context outweighed the cells (norm 13.9 vs
+    9.8) and the descriptors failed across viewpoints (held-out MS 0.05 on viewpoint pairs).
+    Concatenating did not fix that by 7,000 steps (experiments/RESULTS.md, "The fast
+    network"): this backbone is not yet one to train weights on.
     """
 
     config: ModelConfig
