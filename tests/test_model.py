@@ -131,6 +131,24 @@ def test_fast_backbone_keeps_one_point_per_cell_and_the_paper_ranges(height, wid
     np.testing.assert_allclose(np.linalg.norm(pred.descriptors, axis=-1), 1.0, rtol=1e-5)
 
 
+def test_fast_network_is_translation_equivariant_in_whole_cells_away_from_the_border():
+    # Content shifted by one cell gives the same scores, positions and descriptors one cell over,
+    # wherever the receptive field (about 60 px with the heads) sees no padding. An earlier
+    # version with a 1/16 level failed this and learned descriptors of where a cell sits in the
+    # crop instead of what it shows (experiments/RESULTS.md, "The fast network").
+    big = jax.random.uniform(jax.random.PRNGKey(8), (1, 168, 200, 3))
+    a, b = apply(SMALL_FAST, big[:, :160, :192]), apply(SMALL_FAST, big[:, 8:, 8:])
+    margin = 8  # cells: 64 px, more than the receptive field's radius
+
+    def inner(leaf, offset):
+        grid = leaf.reshape(20, 24, -1)
+        return grid[margin + offset:20 - margin + offset, margin + offset:24 - margin + offset]
+
+    for name in ("scores", "relative", "descriptors"):
+        np.testing.assert_allclose(inner(getattr(a, name), 1), inner(getattr(b, name), 0),
+                                   atol=1e-5, err_msg=name)
+
+
 def test_fast_network_gradients_reach_every_parameter():
     images = jax.random.uniform(jax.random.PRNGKey(6), (2, 32, 48, 3))
     variables = init_variables(jax.random.PRNGKey(0), SMALL_FAST)
@@ -151,7 +169,7 @@ def test_fast_network_gradients_reach_every_parameter():
     for path, grad in flat:
         assert np.all(np.isfinite(grad)), path
         assert np.any(grad != 0), f"no gradient reaches {jax.tree_util.keystr(path)}"
-    # The 1/16 context level, the full-resolution patch conv and the residual blocks all train.
+    # The full-resolution patch conv and the residual blocks train too.
     names = " ".join(jax.tree_util.keystr(path) for path, _ in flat)
     assert "backbone" in names and len(flat) > 30
 

@@ -49,7 +49,8 @@ class ModelConfig:
     # Width of the descriptor head's hidden conv; 0 = head_channels (the paper's: 256 for all).
     descriptor_head_channels: int = 0
     # Kernel side of that hidden conv (the paper's: 3). The fast network's is 1: its output conv
-    # is 3x3 already, and a 3x3 hidden conv over 192 inputs would add a fifth to its FLOPs.
+    # is 3x3 already, a 3x3 hidden conv would add 0.27 GFLOP (14%), and at 1,500 steps it
+    # matched translated crops no better (experiments/RESULTS.md, "The fast network").
     descriptor_head_kernel: int = 3
     # C1-C4 of the paper's Table 1 sample the descriptor map at the predicted position; C0 reads
     # the coarse entry of the cell.
@@ -79,7 +80,7 @@ class ModelConfig:
 
 def fast_config(**changes) -> ModelConfig:
     """The fast network: :class:`FastBackbone` (8/24/48/96 channels), 64-wide score and position
-    heads, a 128-wide 1x1 descriptor head and 128-d descriptors; 2.14 GFLOP per 240x320 image
+    heads, a 128-wide 1x1 descriptor head and 128-d descriptors; 1.96 GFLOP per 240x320 image
     against the paper network's 13.3 (``benchmarks/common.py`` ``forward_gflop``)."""
     fields = dict(backbone="fast", backbone_channels=(8, 24, 48, 96), head_channels=64,
                   descriptor_head_channels=128, descriptor_head_kernel=1, descriptor_dim=128)
@@ -236,31 +237,34 @@ def _conv_bn_act(x, channels, *, train, config, dtype, kernel=(3, 3), strides=1,
 
 
 class FastBackbone(nn.Module):
-    """A backbone at about a sixth of the paper's FLOPs (its section 6 lists the components).
+    """A backbone at about a seventh of the paper's FLOPs (its section 6 lists the components).
 
     Widths c1, c2, c4, c8 = ``config.backbone_channels`` at resolutions 1, 1/2, 1/4, 1/8. As
     in XFeat and ALIKE, the high resolutions get few channels (a 3x3 conv costs pixels x c_in x
     c_out) and depth goes where pixels are few: one conv at 1/1 and 1/2, a conv and a residual
-    block at 1/4 and 1/8, and a residual block at 1/16 whose output is upsampled to 1/8 (XFeat's
-    pyramid fusion), which widens the descriptors' receptive field for the cost of a few convs
-    on 300 pixels. Downsampling is the paper's 2x2 max-pool, not a strided conv, so that every
-    1/8 feature stays centred on its cell (pixel 8c + 3.5, module docstring); a stride-2 3x3
-    "SAME" conv shifts the grid by half an input pixel per level.
+    block at 1/4 and 1/8. Downsampling is the paper's 2x2 max-pool, not a strided conv, so that
+    every 1/8 feature stays centred on its cell (pixel 8c + 3.5, module docstring); a stride-2
+    3x3 "SAME" conv shifts the grid by half an input pixel per level.
 
-    images [B, H, W, 3] (normalised) -> (full [B, H, W, c1], cells [B, H/8, W/8, c8],
-    context [B, H/8, W/8, 2 c8]): the full-resolution features that the score and position heads
-    read through a patch conv (the paper's "skip connections from higher resolution"), the
-    cell features, and the cell features beside the upsampled 1/16 context. Concatenated, not
-    added: in a first version that added them, the context outweighed the cells (norm 13.9 vs
-    9.8) and the descriptors failed across viewpoints (held-out MS 0.05 on viewpoint pairs).
-    Concatenating did not fix that by 7,000 steps (experiments/RESULTS.md, "The fast
-    network"): this backbone is not yet one to train weights on.
+    No coarser level: two earlier versions upsampled a 1/16 residual block into the descriptor
+    head (XFeat's pyramid fusion) and trained descriptors that told cells apart by where they
+    sit in the 128x160 training crop, reading the zero padding through a receptive field of
+    about 200 px, instead of by what they show. On crops they worked; on larger images, where
+    most cells are far from any border, the descriptors collapsed (mean cosine between cells of
+    one image 0.46 at 480x640) and held-out viewpoint pairs matched at MS 0.05. The receptive
+    field here is the paper network's (about 100 px) and the outputs are exactly
+    translation-equivariant in steps of one cell away from the border (experiments/RESULTS.md,
+    "The fast network").
+
+    images [B, H, W, 3] (normalised) -> (full [B, H, W, c1], cells [B, H/8, W/8, c8]): the
+    full-resolution features that the score and position heads read through a patch conv (the
+    paper's "skip connections from higher resolution"), and the cell features.
     """
 
     config: ModelConfig
 
     @nn.compact
-    def __call__(self, x: jax.Array, train: bool) -> tuple[jax.Array, jax.Array, jax.Array]:
+    def __call__(self, x: jax.Array, train: bool) -> tuple[jax.Array, jax.Array]:
         cfg = self.config
         block = functools.partial(_conv_bn_act, train=train, config=cfg, dtype=jnp.dtype(cfg.dtype))
 
@@ -272,15 +276,7 @@ class FastBackbone(nn.Module):
         full = block(x, c1)
         x = block(max_pool_2x2(full), c2)
         x = residual(block(max_pool_2x2(x), c4))
-        cells = residual(block(max_pool_2x2(x), c8))
-        batch, h, w, _ = cells.shape
-        if h % 2 or w % 2:
-            # An odd cell grid has no whole 1/16 level: no context.
-            return full, cells, jnp.concatenate([cells, jnp.zeros_like(cells)], axis=-1)
-        coarse = residual(block(max_pool_2x2(cells), c8))
-        # Half-pixel-centred bilinear: entry k of 1/16 sits between cells 2k and 2k + 1.
-        up = jax.image.resize(coarse, (batch, h, w, c8), "linear").astype(cells.dtype)
-        return full, cells, jnp.concatenate([cells, up], axis=-1)
+        return full, residual(block(max_pool_2x2(x), c8))
 
 
 class UnsuperPoint(nn.Module):
@@ -310,7 +306,8 @@ class UnsuperPoint(nn.Module):
                     x = max_pool_2x2(x)
             point_input = descriptor_input = x
         else:
-            full, cells, descriptor_input = FastBackbone(cfg, name="backbone")(x, train)
+            full, cells = FastBackbone(cfg, name="backbone")(x, train)
+            descriptor_input = cells
             # Each cell's own 8x8 full-resolution features, as one patch conv: the score and
             # the position inside the cell read the pixels they localise.
             patch = conv_bn_act(full, cfg.head_channels, kernel=(CELL, CELL), strides=CELL,
