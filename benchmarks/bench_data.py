@@ -21,8 +21,9 @@ import jax
 from jax.sharding import NamedSharding, PartitionSpec as P
 
 import common
+from usp_jax.training import step as step_lib
 from usp_jax import config as config_lib
-from usp_jax import data, train
+from usp_jax.training import data
 
 
 def steps_per_second(step, state, batches, steps: int) -> tuple[float, object]:
@@ -56,10 +57,10 @@ def main() -> None:
     pipeline_rate = data.measure_throughput(config.data, batch, args.steps)
     print(f"pipeline alone: {pipeline_rate:.1f} photos/s")
 
-    mesh = train.data_mesh()
+    mesh = step_lib.data_mesh()
     sharding = NamedSharding(mesh, P("data"))
-    state = jax.device_put(train.create_state(config), NamedSharding(mesh, P()))
-    step = train.jit_train_step(config, mesh)
+    state = jax.device_put(step_lib.create_state(config), NamedSharding(mesh, P()))
+    step = step_lib.jit_train_step(config, mesh)
     dataset = data.make_dataset(config.data, batch, seed=config.seed)
     cached = jax.make_array_from_process_local_data(sharding, dataset[0])
 

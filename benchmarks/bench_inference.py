@@ -30,9 +30,10 @@ import jax
 import numpy as np
 
 import common
-from usp_jax import baselines, benchmark
+from usp_jax.evaluation import baselines
+from usp_jax.evaluation import benchmark
 from usp_jax.inference import PRETRAINED, Detector
-from usp_jax.model import fast_config, init_variables
+from usp_jax.core.model import fast_config, init_variables
 
 NETWORKS = ("paper", "fast")
 OPENCV = ("ORB", "AKAZE", "SIFT")

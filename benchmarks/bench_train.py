@@ -2,7 +2,7 @@
 
 Both run in this process on the same uint8 photo crops, in alternating blocks of steps so that
 machine-load drift hits both alike (``common.interleaved``). The JAX step is
-``usp_jax.train.jit_train_step`` exactly as ``fit`` uses it (homography sampling, warp,
+``usp_jax.training.step.jit_train_step`` exactly as ``fit`` uses it (homography sampling, warp,
 photometric augmentation, one forward over both branches, all loss terms, backward, Adam, the
 finiteness guard, donated state); the PyTorch step does the same work
 (``torch_reference.TrainStep``). Compile time is reported separately.
@@ -26,9 +26,12 @@ import numpy as np
 from jax.sharding import NamedSharding, PartitionSpec as P
 
 import common
+from usp_jax.training import step as step_lib
 from usp_jax import config as config_lib
-from usp_jax import data, geometry, losses, train
-from usp_jax.model import UnsuperPoint
+from usp_jax.training import data
+from usp_jax.core import geometry
+from usp_jax.core import losses
+from usp_jax.core.model import UnsuperPoint
 
 
 def photo_batch(config: config_lib.Config, batch: int) -> np.ndarray:
@@ -39,11 +42,11 @@ def photo_batch(config: config_lib.Config, batch: int) -> np.ndarray:
 
 def jax_step(config: config_lib.Config, images: np.ndarray):
     """(compiled step, initial state, device images, compile seconds) of the real train step."""
-    mesh = train.data_mesh()
-    state = jax.device_put(train.create_state(config), NamedSharding(mesh, P()))
+    mesh = step_lib.data_mesh()
+    state = jax.device_put(step_lib.create_state(config), NamedSharding(mesh, P()))
     device_images = jax.device_put(images, NamedSharding(mesh, P("data")))
     start = time.perf_counter()
-    compiled = train.jit_train_step(config, mesh).lower(state, device_images).compile()
+    compiled = step_lib.jit_train_step(config, mesh).lower(state, device_images).compile()
     return compiled, state, device_images, time.perf_counter() - start
 
 
@@ -62,11 +65,11 @@ def check_against_torch(config: config_lib.Config, images: np.ndarray) -> dict:
     import torch
     import torch_reference
 
-    state = train.create_state(config)
+    state = step_lib.create_state(config)
     batch, height, width, _ = images.shape
     floats = jnp.asarray(images, jnp.float32) / 255.0
     images_a, images_b, homographies = jax.jit(
-        lambda key, x: train.make_branches(key, x, config.homography, config.photometric)
+        lambda key, x: step_lib.make_branches(key, x, config.homography, config.photometric)
     )(jax.random.PRNGKey(2), floats)
     model = UnsuperPoint(config.model)
 

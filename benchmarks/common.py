@@ -20,7 +20,7 @@ from typing import Callable
 import jax
 import jax.numpy as jnp
 
-from usp_jax.model import ModelConfig, UnsuperPoint, init_variables
+from usp_jax.core.model import ModelConfig, UnsuperPoint, init_variables
 
 
 def time_calls(fn: Callable[[], object], repeats: int, warmup: int = 1) -> list[float]:

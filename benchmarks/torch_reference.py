@@ -1,9 +1,9 @@
 """A PyTorch CPU reference of UnsuperPoint's training step and inference, for side-by-side timing.
 
 Not part of the library (``pip install torch==2.13.0`` gives the CPU build). It is the same
-network as ``usp_jax.model.UnsuperPoint`` layer for layer (``load_flax_variables`` copies a Flax
+network as ``usp_jax.core.model.UnsuperPoint`` layer for layer (``load_flax_variables`` copies a Flax
 checkpoint into it, and ``bench_train.py --check`` compares the two), the same losses as
-``usp_jax.losses.total_loss`` and the same augmentation as ``usp_jax.train.make_branches``, written
+``usp_jax.core.losses.total_loss`` and the same augmentation as ``usp_jax.training.step.make_branches``, written
 the way a PyTorch user would: NCHW tensors in channels-last memory (oneDNN's fast path), built-in
 ``grid_sample`` for warps and descriptor interpolation, ``torch.optim.Adam``.
 
@@ -21,9 +21,9 @@ import torch.nn.functional as F
 from torch import nn
 
 from usp_jax import config as config_lib
-from usp_jax.augment import PhotometricConfig
-from usp_jax.losses import LossConfig
-from usp_jax.model import CELL, ModelConfig
+from usp_jax.core.augment import PhotometricConfig
+from usp_jax.core.losses import LossConfig
+from usp_jax.core.model import CELL, ModelConfig
 
 _MEAN, _STD = 0.5, 0.225
 _LUMA = (0.299, 0.587, 0.114)
@@ -40,7 +40,7 @@ class ConvBnAct(nn.Sequential):
 
 
 class TorchUnsuperPoint(nn.Module):
-    """Backbone + score, position and descriptor heads, as usp_jax.model.UnsuperPoint.
+    """Backbone + score, position and descriptor heads, as usp_jax.core.model.UnsuperPoint.
 
     forward: images [B, 3, H, W] float in [0, 1] -> (scores [B, M], relative [B, M, 2],
     keypoints [B, M, 2], descriptors [B, M, F]), M = (H / 8) * (W / 8) in row-major cell order.
@@ -77,7 +77,7 @@ class TorchUnsuperPoint(nn.Module):
         descriptor_map = self.descriptor(x)
         if self.config.interpolate_descriptors:
             # grid_sample's align_corners=False puts -1 and 1 at the outer edges of the map, so
-            # pixel x reads feature column (x + 0.5) / 8 - 0.5, the convention of usp_jax.model;
+            # pixel x reads feature column (x + 0.5) / 8 - 0.5, the convention of usp_jax.core.model;
             # "border" repeats the border cells like its clip.
             size = torch.tensor([cells_w, cells_h], dtype=keypoints.dtype)
             grid = (2 * (keypoints + 0.5) / (CELL * size) - 1)[:, None]
@@ -91,7 +91,7 @@ class TorchUnsuperPoint(nn.Module):
 
 
 def load_flax_variables(model: TorchUnsuperPoint, variables) -> None:
-    """Copies Flax ``{"params", "batch_stats"}`` of usp_jax.model.UnsuperPoint into ``model``."""
+    """Copies Flax ``{"params", "batch_stats"}`` of usp_jax.core.model.UnsuperPoint into ``model``."""
     params, stats = variables["params"], variables["batch_stats"]
     blocks = [m for m in model.backbone if isinstance(m, ConvBnAct)]
     blocks += [model.score[0], model.position[0], model.descriptor[0]]
@@ -115,7 +115,7 @@ def load_flax_variables(model: TorchUnsuperPoint, variables) -> None:
 
 
 # ------------------------------------------------------------------------------------------------
-# Augmentation (usp_jax.geometry.warp_image, usp_jax.augment.photometric_augment)
+# Augmentation (usp_jax.core.geometry.warp_image, usp_jax.core.augment.photometric_augment)
 
 
 def warp_images(images: torch.Tensor, homographies: torch.Tensor) -> torch.Tensor:
@@ -147,7 +147,7 @@ def _gaussian_blur(images: torch.Tensor, sigma: torch.Tensor, radius: int) -> to
 
 def photometric_augment(images: torch.Tensor, config: PhotometricConfig,
                         generator: torch.Generator) -> torch.Tensor:
-    """Brightness, contrast, saturation, blur and noise of [B, 3, H, W], as usp_jax.augment."""
+    """Brightness, contrast, saturation, blur and noise of [B, 3, H, W], as usp_jax.core.augment."""
     batch = images.shape[0]
 
     def draw(low, high, probability, neutral):
@@ -176,7 +176,7 @@ def photometric_augment(images: torch.Tensor, config: PhotometricConfig,
 
 
 # ------------------------------------------------------------------------------------------------
-# Losses (usp_jax.losses, usp_jax.correspondence)
+# Losses (usp_jax.core.losses, usp_jax.core.correspondence)
 
 
 def _safe_sqrt(sq: torch.Tensor) -> torch.Tensor:
@@ -214,7 +214,7 @@ def _decorrelation(descriptors: torch.Tensor, mode: str) -> torch.Tensor:
 
 def total_loss(pred_a, pred_b, homographies: torch.Tensor, height: int, width: int,
                config: LossConfig = LossConfig()) -> torch.Tensor:
-    """usp_jax.losses.total_loss, batched: per-pair eq. 4 averaged over the batch."""
+    """usp_jax.core.losses.total_loss, batched: per-pair eq. 4 averaged over the batch."""
     scores_a, relative_a, keypoints_a, desc_a = pred_a
     scores_b, relative_b, keypoints_b, desc_b = pred_b
     a_in_b = _warp_points(homographies, keypoints_a)
@@ -267,7 +267,7 @@ def total_loss(pred_a, pred_b, homographies: torch.Tensor, height: int, width: i
 
 
 class TrainStep:
-    """One optimisation step on a uint8 batch, as usp_jax.train.train_step (without its
+    """One optimisation step on a uint8 batch, as usp_jax.training.step.train_step (without its
     finiteness guard): branches, one forward over both, the losses, backward, Adam."""
 
     def __init__(self, config: config_lib.Config, seed: int = 0):

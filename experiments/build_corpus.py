@@ -21,7 +21,7 @@ Photos, each chosen by looking at it (rendered art, drawings and synthetic image
 * ``mate-backgrounds``: the twelve ``nature`` photos;
 * ``opencv-doc``: the photos of ``examples/data`` at least 200 px on each side, and every 50th
   frame of ``vtest.avi`` (a street scene, 768x576);
-* the photos inside installed PyPI packages (``usp_jax.data.sample_photos``).
+* the photos inside installed PyPI packages (``usp_jax.inference.images.sample_photos``).
 
 Files are copied byte for byte; video frames are written as PNG.
 """
@@ -39,7 +39,7 @@ import tempfile
 
 import cv2
 
-from usp_jax import data
+from usp_jax.inference import images
 
 PACKAGES = ("plasma-workspace-wallpapers", "mate-backgrounds", "opencv-doc")
 
@@ -145,7 +145,7 @@ def candidates(root: pathlib.Path, origins: dict[str, str]):
         for name in names:
             inner = f"{OPENCV_DIR}/{name}"
             yield f"opencv/{scene}", origins["opencv-doc"], inner, root / inner, f"opencv-{name}"
-    for distribution, path in data.sample_photos():
+    for distribution, path in images.sample_photos():
         installed = importlib.metadata.distribution(distribution)
         inner = path.relative_to(installed.locate_file("")).as_posix()
         yield (
@@ -198,7 +198,7 @@ def build(out: pathlib.Path, debs: dict[str, pathlib.Path], work: pathlib.Path) 
         )
 
     for scene, origin, inner, path, name in candidates(root, origins):
-        shape = data.read_image(path).shape
+        shape = images.read_image(path).shape
         if min(shape[:2]) < MIN_SIDE:
             too_small.append(inner)
             continue

@@ -1,4 +1,4 @@
-"""The fast network (``usp_jax.model.fast_config``): its recipe, both stages in one place.
+"""The fast network (``usp_jax.fast_config``): its recipe, both stages in one place.
 
 Build the corpus first (``experiments/build_corpus.py``), then from the repository root::
 
@@ -14,7 +14,7 @@ branch) and homographies, and the stronger lighting changes of the paper network
 
 Stage 1 (``get_config``), from scratch: 128x160 crops cut from 25-50% of a photo's extent, the
 same pixel scale as the paper's 240x320 crops at a quarter of the cost per step, with the
-descriptor weights rescaled to the cell count as in ``cpu_photos.py`` (at M = 320 cells the
+descriptor weights rescaled to the cell count as in ``paper_network.py`` (at M = 320 cells the
 paper's lambda_d = 250 lets positives outweigh negatives and the descriptors collapse). Adam at
 1e-3 after 300 warm-up steps, decaying to 0 on a cosine.
 
@@ -23,7 +23,7 @@ as the paper network's stage 6 did; a fresh Adam, 100 warm-up steps to 3e-4 and 
 """
 
 from usp_jax import config as config_lib
-from usp_jax.model import fast_config
+from usp_jax import fast_config
 
 _COMMON = [
     "photometric.gamma=0.5",

@@ -24,8 +24,14 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from usp_jax import checkpoint, data, geometry, losses, plotting, train
-from usp_jax.model import UnsuperPoint
+from usp_jax.training import crops
+from usp_jax.training import metrics as metrics_lib
+from usp_jax.training import checkpoint
+from usp_jax.training import data
+from usp_jax.core import geometry
+from usp_jax.core import losses
+from usp_jax.evaluation import plotting
+from usp_jax.core.model import UnsuperPoint
 
 
 def pair_statistics(checkpoint_dir, photos, height=240, width=320, seed=0):
@@ -47,30 +53,13 @@ def pair_statistics(checkpoint_dir, photos, height=240, width=320, seed=0):
     d, scores, rel_x = [], [], []
     for i in range(len(source)):
         for repeat in range(4):
-            crop = data.random_crop(rng, source[i], height, width, (0.5, 1.0))
+            crop = crops.random_crop(rng, source[i], height, width, (0.5, 1.0))
             key = jax.random.PRNGKey(seed * 1000 + i * 10 + repeat)
             dk, paired, s, x = jax.device_get(run(jnp.asarray(crop, jnp.float32) / 255, key))
             d.append(dk[paired])
             scores.append(s.ravel())
             rel_x.append(x.ravel())
     return np.concatenate(d), np.concatenate(scores), np.concatenate(rel_x)
-
-
-def chain_stages(stages: list[list[dict]]) -> tuple[list[dict], list[int]]:
-    """One step axis over training stages that each count from step 1 (a run started with
-    ``--init`` has a fresh step counter). Returns the rows with steps offset by the earlier
-    stages' last steps, and the offset step at which each later stage begins.
-
-    A run resumed after a kill logs the steps after its last checkpoint again; the later row of
-    a step wins, as it is the one the kept weights went through."""
-    rows, starts, offset = [], [], 0
-    for index, stage in enumerate(stages):
-        latest = {row["step"]: row for row in stage}
-        if index:
-            starts.append(offset)
-        rows += [{**row, "step": step + offset} for step, row in sorted(latest.items())]
-        offset += max(latest, default=0)
-    return rows, starts
 
 
 def main() -> None:
@@ -95,9 +84,9 @@ def main() -> None:
     plotting.plot_histograms(series, out / "fig5_x_in_cell.png", bins=np.linspace(0, 8, 33),
                              xlabel="x inside the 8 px cell", density=True,
                              title="x-coordinate predictions (paper Fig. 5)")
-    stages = [train.read_metrics(workdir) for workdir in [*args.earlier_stages, args.checkpoint]]
+    stages = [metrics_lib.read_metrics(workdir) for workdir in [*args.earlier_stages, args.checkpoint]]
     if stages[-1]:  # a training workdir: also its logged statistics over the run
-        rows, starts = chain_stages(stages)
+        rows, starts = metrics_lib.chain_stages(stages)
         plotting.plot_training_curves(rows, out / "training_curves.png", stage_starts=starts)
     print(f"median d_k {np.median(d):.2f} px over {d.size} pairs; score mean {scores.mean():.3f} "
           f"std {scores.std():.3f}; share of x within 0.4 px of a cell edge "

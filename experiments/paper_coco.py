@@ -1,7 +1,7 @@
 """The paper's training run (section 5): COCO train2017, 240x320, batch 5 per branch, Adam 1e-3,
 10 epochs (236,574 steps), the paper's loss weights.
 
-Prepare COCO once in array_record form (needs TensorFlow and internet; see usp_jax.data), then::
+Prepare COCO once in array_record form (needs TensorFlow and internet; see usp_jax.training.data), then::
 
     usp-jax train --config experiments/paper_coco.py --data tfds:coco/2017 --workdir runs/coco
 

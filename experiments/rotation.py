@@ -1,4 +1,4 @@
-"""The fast network (``usp_jax.model.fast_config``) trained from scratch to be rotation-robust: the
+"""The fast network (``usp_jax.fast_config``) trained from scratch to be rotation-robust: the
 recipe of ``experiments/fast.py``, both stages, with training homographies that rotate over the
 full circle, uniformly in [-180, 180] degrees, from the first step.
 
@@ -15,7 +15,7 @@ training homographies rarely rotate: a rotated patch must fit inside the crop, s
 them turn by 20 degrees or more (``experiments/training_rotations.py``). Here every example comes
 with a square context window around its crop (``data.context_window``: the crop's diagonal, at
 the same pixel scale), branch A is the centre crop and branch B is rendered from the whole window
-(``train.make_window_branches``), so B shows real photo content at any angle, and the angle
+(``training.step.make_window_branches``), so B shows real photo content at any angle, and the angle
 follows its distribution exactly (``homography.rotation_range``; half the pairs turn by 90
 degrees or more). Everything else is ``fast.py``'s: see there for why each setting.
 

@@ -2,8 +2,8 @@
 (``compare.in_plane_rotation``, at the image centre) of many draws of ``geometry.sample_homography``
 with each config's ranges and crop size.
 
-    python3 experiments/training_rotations.py experiments/cpu_photos_stage10.py \
-        experiments/cpu_photos_stage11.py
+    python3 experiments/training_rotations.py experiments/paper_network.py:stage10 \
+        experiments/rotation.py
 
 A rotated patch must fit inside the image, so the accepted rotations depend on the patch ratio as
 much as on the angle range (``HomographyConfig``); a config with ``data.context_window`` draws
@@ -13,36 +13,11 @@ its patch inside a window around the crop instead, where any angle fits.
 from __future__ import annotations
 
 import argparse
-import importlib.util
-import pathlib
 
-import jax
 import numpy as np
 
 from usp_jax import config as config_lib
-from usp_jax import geometry
-
-_spec = importlib.util.spec_from_file_location(
-    "compare", pathlib.Path(__file__).with_name("compare.py")
-)
-compare = importlib.util.module_from_spec(_spec)
-_spec.loader.exec_module(compare)
-
-
-def rotations(homography: geometry.HomographyConfig, height: int, width: int, draws: int,
-              seed: int = 0, window: tuple[int, int] | None = None) -> np.ndarray:
-    """In-plane rotations in degrees [draws] of random training homographies for a
-    [height, width] crop; with ``window`` (a config's ``data.context_window``), those drawn for
-    branch B rendered from a context window of that (height, width) around the crop."""
-    keys = jax.random.split(jax.random.PRNGKey(seed), draws)
-    if window is None:
-        sample = jax.vmap(lambda key: geometry.sample_homography(key, height, width, homography))
-    else:
-        sample = jax.vmap(lambda key: geometry.sample_window_homography(key, height, width, window,
-                                                                        homography))
-    return np.array([compare.in_plane_rotation(h, (height, width))
-                     for h in np.asarray(sample(keys), np.float64)])
-
+from usp_jax.evaluation.analysis import training_rotations
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
@@ -57,7 +32,7 @@ def main() -> None:
         except (OSError, ValueError, AttributeError) as error:
             parser.error(f"cannot load {path}: {error}")
         window = cfg.data.example_shape[:2] if cfg.data.context_window else None
-        size = np.abs(rotations(cfg.homography, cfg.data.height, cfg.data.width, args.draws,
+        size = np.abs(training_rotations(cfg.homography, cfg.data.height, cfg.data.width, args.draws,
                                 window=window))
         print(f"{path} ({cfg.data.height}x{cfg.data.width}, patch {cfg.homography.patch_ratio:g}, "
               f"{args.draws} draws): |rotation| median {np.median(size):.1f} deg, 90th percentile "

@@ -1,11 +1,11 @@
-"""Known-answer tests of usp_jax.augment."""
+"""Known-answer tests of usp_jax.core.augment."""
 
 import cv2
 import jax
 import numpy as np
 import pytest
 
-from usp_jax.augment import PhotometricConfig, gaussian_blur, photometric_augment
+from usp_jax.core.augment import PhotometricConfig, gaussian_blur, photometric_augment
 
 ALWAYS = dict(p_brightness=1.0, p_contrast=1.0, p_saturation=1.0, p_noise=1.0, p_blur=1.0)
 ZERO = dict(brightness=0.0, contrast=0.0, saturation=0.0, noise_std=0.0, blur_sigma=0.0)

@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 import skimage.data
 
-from usp_jax.baselines import available_baselines, opencv_method
+from usp_jax.evaluation.baselines import available_baselines, opencv_method
 
 # name -> (descriptor norm, dtype, length)
 EXPECTED = {

@@ -3,9 +3,9 @@ import json
 import jax
 import pytest
 
-from usp_jax.benchmark import OPENCV_DETECTORS, benchmark, format_benchmark, protocol_top_n
+from usp_jax.evaluation.benchmark import OPENCV_DETECTORS, benchmark, format_benchmark, protocol_top_n
 from usp_jax.inference import Detector
-from usp_jax.model import ModelConfig, fast_config, init_variables
+from usp_jax.core.model import ModelConfig, fast_config, init_variables
 
 SMALL = ModelConfig(
     backbone_channels=(8, 8, 8, 8, 16, 16, 16, 16), head_channels=16, descriptor_dim=16

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from usp_jax import evaluation
-from usp_jax.cli import _detect_at_most, main, parse_args
+from usp_jax.cli import main, parse_args
 
 TINY = ["model.backbone_channels=(8, 8, 8, 8, 16, 16, 16, 16)", "model.head_channels=16",
         "model.descriptor_dim=16", "data.height=32", "data.width=48", "batch_size=2",
@@ -38,7 +38,7 @@ def test_make_pairs_writes_hpatches_layout(pairs_dir):
 
 
 def test_make_pairs_rotation_flags_turn_the_viewpoint_pairs(photo, tmp_path):
-    from usp_jax.pairs import pair_rotations
+    from usp_jax.evaluation.pairs import pair_rotations
 
     images = tmp_path / "photos"
     images.mkdir()
@@ -138,30 +138,6 @@ def test_match_recovers_a_known_homography_between_a_photo_and_its_warp(photo, t
     error = evaluation.corner_error(truth, np.array(result["homography"]), (512, 512))
     assert error < 3
     assert (tmp_path / "m.png").stat().st_size > 0
-
-
-class _CornerDetector:
-    """Stands in for Detector: one keypoint on the first and one on the last pixel centre of
-    whatever image it is given, and records that image's shape."""
-
-    def detect(self, image, top_n=None):
-        self.shape = image.shape
-        height, width = image.shape[:2]
-        keypoints = np.array([[0, 0], [width - 1, height - 1]], np.float32)
-        return evaluation.Features(keypoints, np.ones(2, np.float32), np.zeros((2, 4), np.float32))
-
-
-@pytest.mark.parametrize("max_side, detected_shape", [(0, (600, 800)), (1000, (600, 800)),
-                                                      (400, (300, 400))])
-def test_detection_on_a_smaller_copy_returns_keypoints_in_the_originals_pixels(max_side,
-                                                                               detected_shape):
-    detector = _CornerDetector()
-    features = _detect_at_most(detector, np.zeros((600, 800, 3), np.uint8), max_side, None)
-    assert detector.shape[:2] == detected_shape
-    # Halved by area averaging, the first pixel of the copy covers pixels 0-1 of the original
-    # (centre 0.5) and the last one pixels 798-799 (centre 798.5).
-    expected = [[0, 0], [799, 599]] if detected_shape == (600, 800) else [[0.5, 0.5], [798.5, 598.5]]
-    np.testing.assert_allclose(features.keypoints, expected)
 
 
 @pytest.mark.parametrize(
@@ -274,7 +250,7 @@ def test_weights_name_and_checkpoint_exclude_each_other(command, capsys):
 
 def test_detect_with_named_weights_uses_that_network(photo, tmp_path, monkeypatch):
     from usp_jax import inference
-    from usp_jax.model import fast_config, init_variables
+    from usp_jax.core.model import fast_config, init_variables
 
     # A second named network, as the fast one will ship: random weights suffice to tell them apart.
     config = fast_config(backbone_channels=(4, 8, 8, 16), head_channels=8,
@@ -310,5 +286,5 @@ def test_verbose_flag_shows_usp_jax_info_lines_although_imports_install_a_root_h
     assert quiet.returncode == 0 and "INFO" not in quiet.stderr
     verbose = train("-v")  # resumes the first run
     assert verbose.returncode == 0, verbose.stderr
-    assert "INFO usp_jax.train: resumed from step 1" in verbose.stderr
+    assert "INFO usp_jax.training.train: resumed from step 1" in verbose.stderr
     assert "INFO absl" not in verbose.stderr

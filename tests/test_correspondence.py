@@ -2,8 +2,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from usp_jax.correspondence import correspondence_matrix, find_correspondences, pairwise_distances
-from usp_jax.model import relative_to_pixels
+from usp_jax.core.correspondence import correspondence_matrix, find_correspondences, pairwise_distances
+from usp_jax.core.model import relative_to_pixels
 
 H, W = 32, 48
 

@@ -9,7 +9,9 @@ import numpy as np
 import pytest
 import tensorflow_datasets as tfds
 
-from usp_jax import data
+from usp_jax.training import crops
+from usp_jax.inference import images
+from usp_jax.training import data
 
 SMALL = dict(height=48, width=64, num_workers=2, prefetch=2)
 
@@ -63,20 +65,20 @@ def test_folder_source_finds_nested_files_of_mixed_extensions_and_case(tmp_path)
 )
 def test_decode_gives_uint8_rgb_with_known_values(tmp_path, stored, expected_rgb):
     path = _write(tmp_path / "x.png", stored)
-    image = data.read_image(path)
+    image = images.read_image(path)
     assert image.dtype == np.uint8
     np.testing.assert_array_equal(image, np.array(expected_rgb, np.uint8))
 
 
 def test_decode_garbage_is_a_one_line_error_naming_it():
     with pytest.raises(ValueError, match="bad.jpg") as error:
-        data.decode_image(b"not an image", "bad.jpg")
+        images.decode_image(b"not an image", "bad.jpg")
     assert "\n" not in str(error.value)
 
 
 def test_random_crop_shape_and_determinism():
     image = np.random.default_rng(0).integers(0, 256, (100, 150, 3), dtype=np.uint8)
-    crop = lambda seed: data.random_crop(np.random.default_rng(seed), image, 48, 64, (0.3, 1.0))
+    crop = lambda seed: crops.random_crop(np.random.default_rng(seed), image, 48, 64, (0.3, 1.0))
     assert crop(0).shape == (48, 64, 3) and crop(0).dtype == np.uint8
     np.testing.assert_array_equal(crop(0), crop(0))
     assert not np.array_equal(crop(0), crop(1))
@@ -84,14 +86,14 @@ def test_random_crop_shape_and_determinism():
 
 def test_random_crop_of_an_image_the_size_of_the_crop_is_the_image():
     image = np.random.default_rng(0).integers(0, 256, (48, 64, 3), dtype=np.uint8)
-    np.testing.assert_array_equal(data.random_crop(np.random.default_rng(3), image, 48, 64), image)
+    np.testing.assert_array_equal(crops.random_crop(np.random.default_rng(3), image, 48, 64), image)
 
 
 def test_random_crop_never_shrinks_the_window_below_the_output():
     # scale 0.25 of a 2x image asks for a window half the output: raised to exactly the output
     # size, the crop is then an unresampled sub-array.
     image = np.random.default_rng(0).integers(0, 256, (96, 128, 3), dtype=np.uint8)
-    crop = data.random_crop(np.random.default_rng(5), image, 48, 64, (0.25, 0.25))
+    crop = crops.random_crop(np.random.default_rng(5), image, 48, 64, (0.25, 0.25))
     windows = np.lib.stride_tricks.sliding_window_view(image, (48, 64, 3))[..., 0, :, :, :]
     assert (windows == crop).all(axis=(-3, -2, -1)).any()
 
@@ -99,7 +101,7 @@ def test_random_crop_never_shrinks_the_window_below_the_output():
 def test_random_crop_upscales_a_small_image():
     # 20x30 into 48x64: the largest 3:4 window is 20x27, enlarged bilinearly.
     image = np.tile(np.arange(30, dtype=np.uint8) * 8, (20, 1))[..., None].repeat(3, axis=2)
-    crop = data.random_crop(np.random.default_rng(0), image, 48, 64)
+    crop = crops.random_crop(np.random.default_rng(0), image, 48, 64)
     candidates = [
         cv2.resize(image[:, left : left + 27], (64, 48), interpolation=cv2.INTER_LINEAR)
         for left in range(30 - 27 + 1)
@@ -117,10 +119,10 @@ def _coordinate_photo(rows=200, cols=250):
 @pytest.mark.parametrize("scale_range", [(0.3, 0.6), (1.0, 1.0)])
 def test_context_crop_shows_the_photo_at_one_scale_around_a_crop_inside_it(scale_range):
     photo = _coordinate_photo()
-    side = data.context_side(48, 64)
+    side = crops.context_side(48, 64)
     assert side == 80  # the crop's diagonal
     for seed in range(3):
-        window = data.random_context_crop(np.random.default_rng(seed), photo, 48, 64, scale_range)
+        window = crops.random_context_crop(np.random.default_rng(seed), photo, 48, 64, scale_range)
         assert window.shape == (side, side, 4) and window.dtype == np.uint8
         valid = window[..., 3] == 255
         assert set(np.unique(window[..., 3])) <= {0, 255}
@@ -204,7 +206,7 @@ def test_corrupt_file_is_skipped_with_one_warning_and_counted(tmp_path, caplog):
     (tmp_path / "broken.jpg").write_bytes(b"\x00garbage" * 10)
     config = data.DataConfig(source=str(tmp_path), **SMALL)
     dataset = data.make_dataset(config, 4, seed=0)
-    with caplog.at_level(logging.WARNING, logger="usp_jax.data"):
+    with caplog.at_level(logging.WARNING, logger="usp_jax.training.data"):
         batches = [dataset[step] for step in range(3)]  # 12 crops: every file, several times.
     assert all(b.shape == (4, 48, 64, 3) for b in batches)
     warnings = [r.getMessage() for r in caplog.records if "broken.jpg" in r.getMessage()]
@@ -328,6 +330,6 @@ def test_decode_applies_the_exif_orientation_like_cv2_imread():
     exif[0x0112] = 6  # Orientation: the viewer turns it 90 degrees clockwise
     encoded = io.BytesIO()
     image.save(encoded, "JPEG", exif=exif, quality=95)
-    decoded = data.decode_image(encoded.getvalue())
+    decoded = images.decode_image(encoded.getvalue())
     assert decoded.shape == (40, 20, 3)  # upright as displayed: the red half is now on top
     assert decoded[:18].mean(axis=(0, 1))[0] > 240 and decoded[22:].max() < 16

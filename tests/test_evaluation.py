@@ -11,8 +11,9 @@ import numpy as np
 import pytest
 import skimage.data
 
+from usp_jax.inference import nms
 from usp_jax import evaluation as ev
-from usp_jax.baselines import opencv_method
+from usp_jax.evaluation.baselines import opencv_method
 
 SHAPE = (64, 64)
 EYE = np.eye(3)
@@ -165,10 +166,10 @@ def test_nms_radius_keeps_the_higher_score_greedily():
     # A (0.9) suppresses B (0.8, 3 px away) but not C (0.7, 6 px from A): greedy, not transitive.
     points = np.array([[10, 10], [13, 10], [16, 10], [40, 40]], dtype=np.float32)
     scores = np.array([0.9, 0.8, 0.7, 0.1])
-    assert ev.nms_radius(points, scores, 4).tolist() == [0, 2, 3]
-    assert ev.nms_radius(points, scores, 2).tolist() == [0, 1, 2, 3]
+    assert nms.radius_nms_host(points, scores, 4).tolist() == [0, 2, 3]
+    assert nms.radius_nms_host(points, scores, 2).tolist() == [0, 1, 2, 3]
     # The weaker of two close points goes, whichever comes first in the input.
-    assert ev.nms_radius(points[:2], np.array([0.2, 0.6]), 4).tolist() == [1]
+    assert nms.radius_nms_host(points[:2], np.array([0.2, 0.6]), 4).tolist() == [1]
 
 
 def test_resize_pair_adapts_homography_per_image():

@@ -1,6 +1,11 @@
-"""The experiment scripts' own arithmetic: Table 1's configurations and relative changes."""
+"""The experiments' recipes (loaded as config files) and the analysis behind their tables:
+Table 1's configurations and relative changes, bootstrap intervals, breakdowns by view and
+rotation. Everything is imported through the package; scripts are only run."""
 
-import importlib.util
+import ast
+from usp_jax.evaluation import analysis, paper_tables, statistics
+from usp_jax.training import metrics as metrics_lib
+from usp_jax.training import step as step_lib
 import json
 import pathlib
 import subprocess
@@ -12,35 +17,38 @@ import pytest
 EXPERIMENTS = pathlib.Path(__file__).parents[1] / "experiments"
 
 
-def load(name):
-    spec = importlib.util.spec_from_file_location(name, EXPERIMENTS / f"{name}.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+def recipe(spec):
+    """``experiments/FILE.py[:FUNCTION]`` as ``usp-jax train --config`` loads it."""
+    from usp_jax import config as config_lib
+
+    return config_lib.load(str(EXPERIMENTS / spec))
+
+
+def docstring(name):
+    """The module docstring of ``experiments/NAME.py``, read as text."""
+    return ast.get_docstring(ast.parse((EXPERIMENTS / f"{name}.py").read_text()))
 
 
 def test_table1_configurations_switch_exactly_the_three_modules():
-    table1 = load("table1")
-    base = table1.config_for("C4", "sample", 10)
+    base = recipe("table1.py:c4")
     assert base.model.interpolate_descriptors and base.loss.alpha_uni_xy == 100.0
-    assert base.loss.alpha_decorr == 0.03 and base.num_steps == 10
-    assert base.optim.decay_steps == 10
-    c0 = table1.config_for("C0", "sample", 10)
+    assert base.loss.alpha_decorr == 0.03 and base.num_steps == 2000
+    assert base.optim.decay_steps == 2000
+    c0 = recipe("table1.py:c0")
     assert not c0.model.interpolate_descriptors
     assert c0.loss.alpha_uni_xy == 0.0 and c0.loss.alpha_decorr == 0.0
     # Everything else is the C4 run's: same data, descriptor weights and score term.
     assert c0.data == base.data and c0.loss.lambda_d == base.loss.lambda_d
     assert c0.loss.alpha_uni_score == base.loss.alpha_uni_score
     assert c0.loss.alpha_score_mean == base.loss.alpha_score_mean == 1.0
-    c2 = table1.config_for("C2", "sample", 10)
+    c2 = recipe("table1.py:c2")
     assert c2.loss.alpha_uni_xy == 100.0 and c2.loss.alpha_decorr == 0.0
 
 
 def test_table1_changes_are_percent_of_c0_with_lower_le_counted_as_better():
-    table1 = load("table1")
     c0 = {"rs": 0.5, "le": 2.0, "ha1": 0.2, "ha3": 0.4, "ha5": 0.5, "ms": 0.25}
     c1 = {**c0, "rs": 0.55, "le": 1.5, "ms": 0.2}
-    changes = table1.relative_changes({"C0": c0, "C1": c1})
+    changes = statistics.relative_changes({"C0": c0, "C1": c1})
     assert changes["C0"] == pytest.approx(dict.fromkeys(c0, 0.0))
     assert changes["C1"]["rs"] == pytest.approx(10.0)
     assert changes["C1"]["le"] == pytest.approx(25.0)
@@ -54,11 +62,10 @@ def _rows(config, values):
 
 
 def test_table1_bootstrap_is_paired_so_a_change_on_every_pair_has_a_tight_interval():
-    table1 = load("table1")
     rng = np.random.default_rng(0)
     base = rng.uniform(0.2, 1.0, size=50)
-    pairs = table1.per_pair(_rows("C0", base) + _rows("C1", 1.1 * base))
-    intervals = table1.bootstrap_intervals(pairs, rounds=200)
+    pairs = statistics.per_pair(_rows("C0", base) + _rows("C1", 1.1 * base))
+    intervals = statistics.bootstrap_intervals(pairs, rounds=200)
     # Every resample sees C1 = 1.1 x C0: +10% (LE, lower is better, -10%) with no spread. Drawing
     # the two configurations' pairs independently would spread it by tens of percent.
     assert intervals["C1"]["rs"] == pytest.approx((10.0, 10.0))
@@ -67,13 +74,12 @@ def test_table1_bootstrap_is_paired_so_a_change_on_every_pair_has_a_tight_interv
 
 
 def test_table1_bootstrap_interval_widens_with_pair_to_pair_noise_and_skips_undefined_le():
-    table1 = load("table1")
     rng = np.random.default_rng(1)
     base = rng.uniform(0.2, 1.0, size=80)
     noisy = base * rng.uniform(0.8, 1.3, size=80)
     rows = _rows("C0", base) + _rows("C1", noisy)
     rows[0]["le"] = None
-    intervals = table1.bootstrap_intervals(table1.per_pair(rows), rounds=500)
+    intervals = statistics.bootstrap_intervals(statistics.per_pair(rows), rounds=500)
     low, high = intervals["C1"]["rs"]
     point = 100.0 * (noisy.mean() - base.mean()) / base.mean()
     assert low < point < high and high - low > 2.0
@@ -81,29 +87,27 @@ def test_table1_bootstrap_interval_widens_with_pair_to_pair_noise_and_skips_unde
 
 
 def test_table1_markdown_puts_the_papers_numbers_beside_ours():
-    table1 = load("table1")
     values = {"rs": 0.5, "le": 2.0, "ha1": 0.2, "ha3": 0.4, "ha5": 0.5, "ms": 0.25}
-    summary = {name: values for name in table1.CONFIGS}
-    changes = table1.relative_changes(summary)
-    intervals = {name: dict.fromkeys(values, (-1.0, 2.0)) for name in table1.CONFIGS}
-    lines = table1.markdown(summary, changes, intervals, steps=10, pairs=3).splitlines()
+    summary = {name: values for name in paper_tables.CONFIGS}
+    changes = statistics.relative_changes(summary)
+    intervals = {name: dict.fromkeys(values, (-1.0, 2.0)) for name in paper_tables.CONFIGS}
+    lines = paper_tables.table1_markdown(summary, changes, intervals, steps=10, pairs=3).splitlines()
     assert lines[2].startswith("| C0 base |  |  |  | 0.500 (0.633) | 2.000 (0.898) |")
     assert "| +0.0% (+15.3%)<br>[-1.0, +2.0] |" in lines[4]  # C2, HA e=1
     assert lines[-3].startswith("| C4 UnsuperPoint | x | x | x | 0.500 (0.612) |")
 
 
 def test_table1_report_renders_again_from_its_own_json():
-    table1 = load("table1")
     values = {"rs": 0.5, "le": 2.0, "ha1": 0.0, "ha3": 1.0, "ha5": 1.0, "ms": 0.25}
     evaluated = {
-        "summary": {name: {"all": {**values, "pairs": 2}} for name in table1.CONFIGS},
-        "pairs": [row for name in table1.CONFIGS for row in _rows(name, [0.5, 0.5])],
+        "summary": {name: {"all": {**values, "pairs": 2}} for name in paper_tables.CONFIGS},
+        "pairs": [row for name in paper_tables.CONFIGS for row in _rows(name, [0.5, 0.5])],
     }
-    training = {name: dict.fromkeys(table1.TRAINING_STATS, 0.5) for name in table1.CONFIGS}
-    written, table = table1.report(evaluated, steps=7, training=training)
+    training = {name: dict.fromkeys(paper_tables.TRAINING_STATS, 0.5) for name in paper_tables.CONFIGS}
+    written, table = paper_tables.report(evaluated, steps=7, training=training)
     written = json.loads(json.dumps(written))
     assert written["evaluation"] == evaluated
-    assert table == table1.report(written["evaluation"], written["steps"], written["training"])[1]
+    assert table == paper_tables.report(written["evaluation"], written["steps"], written["training"])[1]
     assert "7 steps each from scratch, seed 0; 2 held-out pairs" in table
     assert "| C3 | 0.500 | 0 | 0.500 | 0.500 | 0.500 |" in table
     # C0 scored HA e=1 on no pair: its change is undefined, not a division error.
@@ -123,15 +127,13 @@ def test_table1_table_option_rejects_a_missing_or_old_file_in_one_line(tmp_path)
 
 
 def test_table1_training_stats_average_only_the_runs_last_steps():
-    table1 = load("table1")
-    rows = [{"step": step, **dict.fromkeys(table1.TRAINING_STATS, float(step))}
+    rows = [{"step": step, **dict.fromkeys(paper_tables.TRAINING_STATS, float(step))}
             for step in range(20, 1001, 20)]
-    stats = table1.training_stats(rows, last=100)
+    stats = paper_tables.training_stats(rows, last=100)
     assert stats["usp/mean_d"] == pytest.approx(np.mean([920, 940, 960, 980, 1000]))
 
 
 def test_paper_tables_put_the_papers_value_beside_ours():
-    paper_tables = load("paper_tables")
     ours = {"SIFT": {"all": {"rs": 0.6, "le": None}}, "Mine": {"all": {"rs": 0.7, "le": 1.0}}}
     lines = paper_tables.table(ours, paper_tables.PAPER["240x320"], ("rs", "le"))
     assert lines[2] == "| SIFT | 0.600 (0.451) | - (0.855) |"
@@ -139,7 +141,6 @@ def test_paper_tables_put_the_papers_value_beside_ours():
 
 
 def test_paper_tables_show_the_upsampled_model_under_the_paper_detector_when_evaluated(tmp_path):
-    paper_tables = load("paper_tables")
     ours = {"UnsuperPoint": {"all": {"rs": 0.7}}, "SIFT": {"all": {"rs": 0.6}}}
     missing = tmp_path / "heldout_240x320_up2.json"
     assert paper_tables.with_upsampled(ours, missing) == ours
@@ -151,7 +152,6 @@ def test_paper_tables_show_the_upsampled_model_under_the_paper_detector_when_eva
 
 
 def test_speed_table_puts_the_papers_fps_beside_ours_per_batch():
-    paper_tables = load("paper_tables")
     rows = [
         {"method": "UnsuperPoint", "batch": 1, "height": 240, "width": 320, "fps": 14.06},
         {"method": "UnsuperPoint", "batch": 10, "height": 240, "width": 320, "fps": 13.2},
@@ -163,26 +163,20 @@ def test_speed_table_puts_the_papers_fps_beside_ours_per_batch():
     assert lines[4] == "| SIFT | - (47) | 20.0 (12) |"
 
 
-LATER_STAGES = ["cpu_photos_stage2", "cpu_photos_stage3", "cpu_photos_stage4",
-                "cpu_photos_stage5", "cpu_photos_stage6", "cpu_photos_stage7",
-                "cpu_photos_stage8", "cpu_photos_stage9", "cpu_photos_stage10",
-                "cpu_photos_stage11"]
-# The 240x320 stages that keep the 128x160 stages' range of content scales (stage 9 widens it).
-PAPER_SIZE_STAGES = ["cpu_photos_stage6", "cpu_photos_stage7", "cpu_photos_stage8",
-                     "cpu_photos_stage10", "cpu_photos_stage11"]
+LATER_STAGES = ["stage2", "stage3", "stage6", "stage7", "stage10"]
+# The stages at the paper's own crop size.
+PAPER_SIZE_STAGES = ["stage6", "stage7", "stage10"]
 
 
 @pytest.mark.parametrize("later", LATER_STAGES)
 def test_a_later_stage_continues_the_first_with_a_new_seed_and_a_schedule_nearly_spent_at_its_last_step(later):
-    from usp_jax import config as config_lib
-    from usp_jax import train
 
-    first = config_lib.load(str(EXPERIMENTS / "cpu_photos.py"))
-    stage = config_lib.load(str(EXPERIMENTS / f"{later}.py"))
+    first = recipe("paper_network.py")
+    stage = recipe(f"paper_network.py:{later}")
     # Same network, so the earlier weights load.
     assert stage.model == first.model
     assert stage.seed != first.seed
-    rate = train.learning_rate(stage.optim)
+    rate = step_lib.learning_rate(stage.optim)
     peak = stage.optim.learning_rate
     assert float(rate(0)) == 0.0
     assert float(rate(stage.optim.warmup_steps)) == pytest.approx(peak)
@@ -191,12 +185,11 @@ def test_a_later_stage_continues_the_first_with_a_new_seed_and_a_schedule_nearly
     assert stage.optim.warmup_steps + stage.optim.decay_steps >= stage.num_steps
 
 
-@pytest.mark.parametrize("later", LATER_STAGES[:4])
+@pytest.mark.parametrize("later", LATER_STAGES[:2])
 def test_the_128x160_stages_train_on_the_first_stages_crops_and_losses(later):
-    from usp_jax import config as config_lib
 
-    first = config_lib.load(str(EXPERIMENTS / "cpu_photos.py"))
-    stage = config_lib.load(str(EXPERIMENTS / f"{later}.py"))
+    first = recipe("paper_network.py")
+    stage = recipe(f"paper_network.py:{later}")
     assert (stage.data, stage.loss) == (first.data, first.loss)
 
 
@@ -204,8 +197,8 @@ def test_the_128x160_stages_train_on_the_first_stages_crops_and_losses(later):
 def test_the_paper_size_stages_keep_the_pixel_scale_of_the_128x160_crops_and_the_papers_loss(later):
     from usp_jax import config as config_lib
 
-    first = config_lib.load(str(EXPERIMENTS / "cpu_photos.py"))
-    stage = config_lib.load(str(EXPERIMENTS / f"{later}.py"))
+    first = recipe("paper_network.py")
+    stage = recipe(f"paper_network.py:{later}")
     assert (stage.data.height, stage.data.width) == (240, 320)
     # Output pixels per unit of the photo's extent: the same range of content scales.
     assert np.allclose(np.divide(stage.data.width, stage.data.scale_range),
@@ -216,28 +209,13 @@ def test_the_paper_size_stages_keep_the_pixel_scale_of_the_128x160_crops_and_the
     assert stage.batch_size == config_lib.paper().batch_size
 
 
-def test_the_scale_stage_adds_twice_as_zoomed_in_crops_and_changes_nothing_else():
-    import dataclasses
-
-    from usp_jax import config as config_lib
-
-    stage7 = config_lib.load(str(EXPERIMENTS / "cpu_photos_stage7.py"))
-    stage9 = config_lib.load(str(EXPERIMENTS / "cpu_photos_stage9.py"))
-    # A photo's extent maps to width / f output pixels: 320-640 before, 320-1280 now.
-    assert np.divide(stage9.data.width, stage9.data.scale_range).tolist() == [1280, 320]
-    assert np.divide(stage7.data.width, stage7.data.scale_range).tolist() == [640, 320]
-    assert dataclasses.replace(stage9.data, scale_range=stage7.data.scale_range) == stage7.data
-    assert (stage9.model, stage9.loss, stage9.homography, stage9.photometric) == (
-        stage7.model, stage7.loss, stage7.homography, stage7.photometric)
-
-
 def test_the_lighting_stage_adds_gamma_and_wider_intensity_changes_and_changes_nothing_else():
     import dataclasses
 
     from usp_jax import config as config_lib
 
-    stage7 = config_lib.load(str(EXPERIMENTS / "cpu_photos_stage7.py"))
-    stage10 = config_lib.load(str(EXPERIMENTS / "cpu_photos_stage10.py"))
+    stage7 = recipe("paper_network.py:stage7")
+    stage10 = recipe("paper_network.py:stage10")
     # Every stage before trained on the default: linear changes of up to 30 %, no gamma.
     assert stage7.photometric == config_lib.paper().photometric
     assert (stage7.photometric.gamma, stage7.photometric.brightness) == (0.0, 0.3)
@@ -250,40 +228,18 @@ def test_the_lighting_stage_adds_gamma_and_wider_intensity_changes_and_changes_n
 
 
 def test_each_stage_has_its_own_seed_so_it_sees_other_crops_and_homographies():
-    from usp_jax import config as config_lib
 
-    names = ("cpu_photos", *LATER_STAGES)
-    seeds = [config_lib.load(str(EXPERIMENTS / f"{name}.py")).seed for name in names]
+    names = ("get_config", *LATER_STAGES)
+    seeds = [recipe(f"paper_network.py:{name}").seed for name in names]
     assert len(set(seeds)) == len(seeds)
 
 
-def test_the_viewpoint_stage_trains_on_stronger_perspective_than_the_earlier_stages():
-    import jax
-    import numpy as np
-
-    from usp_jax import config as config_lib
-    from usp_jax import geometry
-
-    def mean_perspective(name):
-        config = config_lib.load(str(EXPERIMENTS / f"{name}.py"))
-        height, width = config.data.height, config.data.width
-        keys = jax.random.split(jax.random.PRNGKey(0), 256)
-        sample = jax.vmap(lambda k: geometry.sample_homography(k, height, width, config.homography))
-        homographies = np.asarray(jax.jit(sample)(keys))
-        # |h31|, |h32| in units of the image size: 0 for affine maps.
-        return float(np.mean(np.abs(homographies[:, 2, :2]) * [width, height]))
-
-    # Its docstring measures 5x (0.0024 -> 0.0127 per pixel at 128x160).
-    assert mean_perspective("cpu_photos_stage5") > 3 * mean_perspective("cpu_photos")
-
-
 def test_chained_stages_share_one_step_axis_and_a_resumed_steps_later_row_wins():
-    figures = load("figures")
     first = [{"step": 1, "loss": 9.0}, {"step": 2, "loss": 8.0}, {"step": 3, "loss": 7.0}]
     # Killed after step 2's checkpoint at step 3, resumed: step 3 is logged again.
     second = [{"step": 1, "loss": 6.0}, {"step": 2, "loss": 5.0}, {"step": 3, "loss": 4.5},
               {"step": 2, "loss": 5.5}, {"step": 3, "loss": 4.0}]
-    rows, starts = figures.chain_stages([first, second])
+    rows, starts = metrics_lib.chain_stages([first, second])
     assert [row["step"] for row in rows] == [1, 2, 3, 4, 5, 6]
     assert [row["loss"] for row in rows] == [9.0, 8.0, 7.0, 6.0, 5.5, 4.0]
     assert starts == [3]
@@ -298,13 +254,12 @@ def _pair_row(method, split, k, corner_error, scene="v_a", **metrics):
 
 
 def test_by_view_averages_each_viewpoint_strength_and_a_failed_estimate_counts_as_infinite():
-    compare = load("compare")
     rows = [
         _pair_row("M", "v", 2, 0.5), _pair_row("M", "v", 2, 2.0, le=None),
         _pair_row("M", "v", 3, 4.0), _pair_row("M", "v", 3, None),
         _pair_row("M", "i", 2, 9.0),  # illumination pairs are not viewpoint strengths
     ]
-    table = compare.by_view(rows)
+    table = analysis.by_view(rows)
     assert list(table["M"]) == [2, 3]
     assert table["M"][2]["pairs"] == 2
     assert (table["M"][2]["ha1"], table["M"][2]["ha3"], table["M"][2]["ha5"]) == (0.5, 1.0, 1.0)
@@ -315,7 +270,6 @@ def test_by_view_averages_each_viewpoint_strength_and_a_failed_estimate_counts_a
 
 
 def test_paired_change_of_a_new_model_is_exact_when_every_pair_moves_alike():
-    compare = load("compare")
     scenes = [f"v_{i}" for i in range(30)]
     base = [_pair_row("UnsuperPoint", "v", 2, 1.0, scene=s, ms=0.2 + 0.02 * i)
             for i, s in enumerate(scenes)]
@@ -323,21 +277,20 @@ def test_paired_change_of_a_new_model_is_exact_when_every_pair_moves_alike():
     new = [_pair_row("ORB", "v", 2, 1.0, scene="v_0")] + [
         {**row, "ms": 1.1 * row["ms"]} for row in reversed(base)
     ]
-    change = compare.paired_change(base, new, rounds=200)
+    change = statistics.paired_change(base, new, rounds=200)
     assert change["ms"][0] == pytest.approx(10.0)
     assert change["ms"][1] == pytest.approx((10.0, 10.0))
     assert change["rs"][0] == pytest.approx(0.0)
     with pytest.raises(ValueError, match="same pairs"):
-        compare.paired_change(base, new[:-1])
+        statistics.paired_change(base, new[:-1])
 
 
 def test_in_plane_rotation_reads_opencvs_rotation_and_the_local_jacobian_of_a_keystone():
     import cv2
 
-    compare = load("compare")
     rotation = np.vstack([cv2.getRotationMatrix2D((159.5, 119.5), 30.0, 1.3), [0, 0, 1]])
     # OpenCV's positive angle turns the image counter-clockwise on screen.
-    assert compare.in_plane_rotation(rotation, (240, 320)) == pytest.approx(-30.0)
+    assert analysis.in_plane_rotation(rotation, (240, 320)) == pytest.approx(-30.0)
     # Under perspective the angle is that of the Jacobian at the centre, here by finite differences.
     keystone = np.array([[1.0, 0.1, 5.0], [0.2, 0.9, -3.0], [4e-4, -3e-4, 1.0]]) @ rotation
     centre, step = np.array([159.5, 119.5]), 1e-3
@@ -345,13 +298,12 @@ def test_in_plane_rotation_reads_opencvs_rotation_and_the_local_jacobian_of_a_ke
     moved = cv2.perspectiveTransform(points, keystone)[0]
     jacobian = np.stack([moved[1] - moved[0], moved[2] - moved[0]], axis=1) / step
     expected = np.degrees(np.arctan2(jacobian[1, 0] - jacobian[0, 1], jacobian[0, 0] + jacobian[1, 1]))
-    assert compare.in_plane_rotation(keystone, (240, 320)) == pytest.approx(expected, abs=1e-3)
+    assert analysis.in_plane_rotation(keystone, (240, 320)) == pytest.approx(expected, abs=1e-3)
 
 
 def test_by_rotation_groups_viewpoint_pairs_by_the_rotation_of_their_homography(tmp_path):
     import cv2
 
-    compare = load("compare")
     image = np.zeros((60, 80, 3), np.uint8)
     angles = {2: 5.0, 3: -25.0, 4: 12.0}
     for scene in ("v_a", "i_a"):
@@ -363,18 +315,17 @@ def test_by_rotation_groups_viewpoint_pairs_by_the_rotation_of_their_homography(
             np.savetxt(tmp_path / scene / f"H_1_{k}", h)
     rows = [_pair_row("M", "v", 2, 0.5, scene="v_a"), _pair_row("M", "v", 3, None, scene="v_a"),
             _pair_row("M", "v", 4, 2.0, scene="v_a"), _pair_row("M", "i", 3, 0.1, scene="i_a")]
-    table = compare.by_rotation(rows, tmp_path)
+    table = analysis.by_rotation(rows, tmp_path)
     assert list(table["M"]) == ["0-10", "10-20", ">=20"]  # in order of the ranges, not of the text
     assert [s["pairs"] for s in table["M"].values()] == [1, 1, 1]  # the "i" pair is not counted
     assert table["M"][">=20"]["ha5"] == 0.0 and table["M"]["0-10"]["ha1"] == 1.0
     with pytest.raises(ValueError, match="lacks 1 evaluated pairs"):
-        compare.by_rotation(rows + [_pair_row("M", "v", 5, 1.0, scene="v_a")], tmp_path)
+        analysis.by_rotation(rows + [_pair_row("M", "v", 5, 1.0, scene="v_a")], tmp_path)
 
 
 def test_inlier_residuals_measure_the_ransac_inliers_against_the_true_homography():
     from usp_jax import evaluation
 
-    residuals = load("inlier_residuals")
     points = np.array([[10.0, 10.0], [50.0, 20.0], [30.0, 60.0], [70.0, 70.0]])
     shift = np.array([[1.0, 0, 4], [0, 1, 0], [0, 0, 1]])  # x + 4
     # Image 2's points: three exactly where H puts them (one 3 px off in y), and an outlier.
@@ -384,35 +335,15 @@ def test_inlier_residuals_measure_the_ransac_inliers_against_the_true_homography
         inliers=np.array([True, True, True, False]),
         homography=shift,
     )
-    row = residuals.inlier_residuals(points, second, matching, shift, (100, 200))
+    row = analysis.inlier_residuals(points, second, matching, shift, (100, 200))
     assert row["inliers"] == 3
     assert row["rms"] == pytest.approx(np.sqrt(9 / 3))
     assert row["over_2px"] == pytest.approx(1 / 3)
     # The three inliers' triangle (shoelace): |40 * 50 - 20 * 10| / 2 = 900 px of 100 x 200.
     assert row["coverage"] == pytest.approx(900 / 20000)
     none = evaluation.Matching(np.zeros((0, 2), np.int64), np.zeros(0, bool), None)
-    empty = residuals.inlier_residuals(points, second, none, shift, (100, 200))
+    empty = analysis.inlier_residuals(points, second, none, shift, (100, 200))
     assert np.isnan(empty["rms"]) and empty["coverage"] == 0
-
-
-def test_the_rotation_stage_trains_on_larger_rotations_and_changes_nothing_else():
-    import dataclasses
-
-    from usp_jax import config as config_lib
-
-    training_rotations = load("training_rotations")
-    stage10 = config_lib.load(str(EXPERIMENTS / "cpu_photos_stage10.py"))
-    stage11 = config_lib.load(str(EXPERIMENTS / "cpu_photos_stage11.py"))
-    assert dataclasses.replace(stage11.homography, patch_ratio=0.85) == stage10.homography
-    assert dataclasses.replace(stage11, seed=stage10.seed, homography=stage10.homography) == stage10
-
-    def share_rotated_by_20_degrees(cfg):
-        angles = training_rotations.rotations(cfg.homography, 240, 320, draws=1000)
-        return np.mean(np.abs(angles) >= 20)
-
-    # Measured with 4,000 draws (training_rotations.py): 4.8 % before, 36 % with the smaller patch.
-    assert share_rotated_by_20_degrees(stage10) < 0.08
-    assert share_rotated_by_20_degrees(stage11) > 0.3
 
 
 def test_the_fast_recipe_trains_the_fast_network_in_the_paper_networks_two_crop_regimes():
@@ -423,7 +354,7 @@ def test_the_fast_recipe_trains_the_fast_network_in_the_paper_networks_two_crop_
     assert stage1.model.backbone == finetune.model.backbone == "fast"
     # Stage 1 at the first paper stage's crops and rescaled descriptor weights; stage 2 at the
     # paper's own size and loss, with the pixel scale of the first.
-    paper_stage1 = config_lib.load(str(EXPERIMENTS / "cpu_photos.py"))
+    paper_stage1 = recipe("paper_network.py")
     assert (stage1.data, stage1.loss) == (paper_stage1.data, paper_stage1.loss)
     assert (finetune.data.height, finetune.data.width) == (240, 320)
     assert finetune.loss == config_lib.paper().loss
@@ -443,10 +374,9 @@ def test_a_config_file_function_is_named_after_a_colon_and_a_missing_one_is_a_cl
 
 
 def test_compare_prints_the_rotation_table_of_every_method_in_30_degree_ranges_up_to_180(
-        tmp_path, monkeypatch, capsys):
+        tmp_path):
     import cv2
 
-    compare = load("compare")
     image = np.zeros((60, 80, 3), np.uint8)
     angles = {2: 5.0, 3: -40.0, 4: 95.0, 5: 170.0, 6: -180.0}
     (tmp_path / "v_a").mkdir()
@@ -458,7 +388,7 @@ def test_compare_prints_the_rotation_table_of_every_method_in_30_degree_ranges_u
     methods = ("UnsuperPoint", "ORB", "SIFT")
     rows = [_pair_row(m, "v", k, 1.0 if m == "SIFT" else 9.0, scene="v_a")
             for m in methods for k in angles]
-    table = compare.by_rotation(rows, tmp_path)
+    table = analysis.by_rotation(rows, tmp_path)
     assert list(table) == list(methods)
     for ranges in table.values():
         assert list(ranges) == ["0-30", "30-60", "90-120", "150-180"]  # empty ranges left out
@@ -467,23 +397,22 @@ def test_compare_prints_the_rotation_table_of_every_method_in_30_degree_ranges_u
     # The command prints one row per method and range.
     results = tmp_path / "results.json"
     results.write_text(json.dumps({"pairs": rows}))
-    monkeypatch.setattr(sys, "argv", ["compare.py", str(results), "--rotation", str(tmp_path)])
-    compare.main()
-    printed = capsys.readouterr().out.split("| rotation (deg) |")[1]
+    run = subprocess.run([sys.executable, str(EXPERIMENTS / "compare.py"), str(results),
+                          "--rotation", str(tmp_path)], capture_output=True, text=True, check=True)
+    printed = run.stdout.split("| rotation (deg) |")[1]
     for method in methods:
         for label in ("0-30", "30-60", "90-120", "150-180"):
             assert f"| {method} | {label} | " in printed
 
 
 def test_upright_pairs_keep_the_fine_rotation_ranges():
-    compare = load("compare")
-    assert compare.rotation_ranges([3.0, -25.0, 37.0]) == compare.ROTATION_RANGES
-    assert compare.rotation_ranges([3.0, -61.0]) == compare.WIDE_ROTATION_RANGES
+    assert analysis.rotation_ranges([3.0, -25.0, 37.0]) == analysis.ROTATION_RANGES
+    assert analysis.rotation_ranges([3.0, -61.0]) == analysis.WIDE_ROTATION_RANGES
 
 
 def test_the_rotation_config_is_the_fast_recipe_turned_over_the_full_circle():
     from usp_jax import config as config_lib
-    from usp_jax.model import fast_config
+    from usp_jax.core.model import fast_config
 
     stages = [config_lib.load(str(EXPERIMENTS / spec)) for spec in ("rotation.py", "rotation.py:finetune")]
     for cfg in stages:
@@ -491,7 +420,7 @@ def test_the_rotation_config_is_the_fast_recipe_turned_over_the_full_circle():
         assert cfg.homography.rotation_range == (-180.0, 180.0)
         assert cfg.homography.rotation_distribution == "uniform"
     assert [(c.data.height, c.data.width) for c in stages] == [(128, 160), (240, 320)]
-    doc = " ".join(load("rotation").__doc__.replace("\\\n", " ").split())  # as a shell reads it
+    doc = " ".join(docstring("rotation").replace("\\\n", " ").split())  # as a shell reads it
     for command in (
         "usp-jax train --config experiments/rotation.py --data data/corpus/train --workdir runs/rotation",
         "usp-jax export --checkpoint runs/rotation --save-weights runs/rotation-stage1.npz",
@@ -501,7 +430,6 @@ def test_the_rotation_config_is_the_fast_recipe_turned_over_the_full_circle():
     ):
         assert command in doc
     # Measured with 4,000 draws (training_rotations.py): half the pairs turn by 90 degrees or more.
-    training_rotations = load("training_rotations")
-    angles = training_rotations.rotations(stages[0].homography, 128, 160, draws=400,
+    angles = analysis.training_rotations(stages[0].homography, 128, 160, draws=400,
                                           window=stages[0].data.example_shape[:2])
     assert 0.4 < np.mean(np.abs(angles) >= 90) < 0.6

@@ -1,4 +1,4 @@
-"""Known-answer tests of usp_jax.geometry against OpenCV and closed-form cases."""
+"""Known-answer tests of usp_jax.core.geometry against OpenCV and closed-form cases."""
 
 import math
 
@@ -8,7 +8,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from usp_jax.geometry import (HomographyConfig, compose_homographies, invert_homography, points_inside,
+from usp_jax.core.geometry import (HomographyConfig, compose_homographies, invert_homography, points_inside,
                               sample_homography, sample_window_homography, warp_image, warp_points,
                               window_origin)
 
@@ -165,7 +165,7 @@ def test_homography_config_rejects_out_of_range_values():
         HomographyConfig(scaling=1.0)
 
 
-# The context window of a 48x64 crop: its diagonal, 80 px (usp_jax.data.context_side).
+# The context window of a 48x64 crop: its diagonal, 80 px (usp_jax.training.crops.context_side).
 WINDOW = (80, 80)
 
 

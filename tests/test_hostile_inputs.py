@@ -13,10 +13,17 @@ import jax
 import numpy as np
 import pytest
 
-from usp_jax import checkpoint, data, evaluation, inference, train
+from usp_jax.training import metrics as metrics_lib
+from usp_jax.inference import nms
+from usp_jax.training import step as step_lib
+from usp_jax.training import workdir as workdir_lib
+from usp_jax.training import checkpoint
+from usp_jax.training import data
+from usp_jax import inference
+from usp_jax.training import train
 from usp_jax import config as config_lib
 from usp_jax.cli import main
-from usp_jax.model import ModelConfig
+from usp_jax.core.model import ModelConfig
 
 SMALL_MODEL = ModelConfig(backbone_channels=(8, 8, 8, 8, 16, 16, 16, 16), head_channels=16,
                           descriptor_dim=16)
@@ -112,12 +119,12 @@ def test_a_bad_option_is_one_parser_line_with_status_2(argv, message, capsys):
 
 
 def test_the_api_rejects_non_finite_radii():
-    variables = train.init_variables(jax.random.PRNGKey(0), SMALL_MODEL)
+    variables = step_lib.init_variables(jax.random.PRNGKey(0), SMALL_MODEL)
     for bad in (math.nan, math.inf, -1.0):
         with pytest.raises(ValueError, match="nms_radius and border must be finite"):
             inference.Detector(variables, SMALL_MODEL, nms_radius=bad)
         with pytest.raises(ValueError, match="finite number >= 0"):
-            inference.radius_nms(np.zeros((4, 2)), np.zeros(4), np.ones(4, bool), 2, 2, bad)
+            nms.radius_nms(np.zeros((4, 2)), np.zeros(4), np.ones(4, bool), 2, 2, bad)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -144,7 +151,7 @@ def test_unwritable_outputs_are_one_line_before_any_work(tmp_path, capsys):
 
 def test_a_workdir_in_a_read_only_folder_is_one_line(tmp_path, capsys, monkeypatch):
     # Root ignores permission bits, so the check itself is made to answer "not writable".
-    monkeypatch.setattr(train.os, "access", lambda path, mode: False)
+    monkeypatch.setattr(workdir_lib.os, "access", lambda path, mode: False)
     assert main(["train", "--workdir", str(tmp_path / "w"), *TINY]) == 2
     assert "is not writable" in one_error_line(capsys, "train")
     assert not (tmp_path / "w").exists()
@@ -157,7 +164,7 @@ def test_a_workdir_in_a_read_only_folder_is_one_line(tmp_path, capsys, monkeypat
 @pytest.fixture(scope="module")
 def weights(tmp_path_factory):
     path = tmp_path_factory.mktemp("weights") / "w.npz"
-    variables = train.init_variables(jax.random.PRNGKey(0), SMALL_MODEL)
+    variables = step_lib.init_variables(jax.random.PRNGKey(0), SMALL_MODEL)
     inference.save_weights(path, variables, SMALL_MODEL)
     return path
 
@@ -232,12 +239,12 @@ def test_radius_nms_at_large_radii_matches_evaluation_nms_radius(radius, cell, g
     valid = rng.uniform(size=m) < 0.9
     valid[0] = True
     keep = np.asarray(
-        inference.radius_nms(keypoints, scores, valid, cells_h, cells_w, radius, cell))
+        nms.radius_nms(keypoints, scores, valid, cells_h, cells_w, radius, cell))
     candidates = np.flatnonzero(valid)
-    expected = candidates[evaluation.nms_radius(keypoints[candidates], scores[candidates], radius)]
+    expected = candidates[nms.radius_nms_host(keypoints[candidates], scores[candidates], radius)]
     np.testing.assert_array_equal(np.flatnonzero(keep), np.sort(expected))
     # limit: the strongest `limit` points of the same result.
-    limited = np.asarray(inference.radius_nms(keypoints, scores, valid, cells_h, cells_w, radius,
+    limited = np.asarray(nms.radius_nms(keypoints, scores, valid, cells_h, cells_w, radius,
                                               cell, limit=2))
     np.testing.assert_array_equal(np.flatnonzero(limited), np.sort(expected[:2]))
 
@@ -267,7 +274,7 @@ def _snapshot(workdir):
 def test_resuming_with_other_settings_is_refused_naming_the_keys(trained):
     before = _snapshot(trained)
     changed = tiny_config(seed=7, **{"optim.learning_rate": 0.5})
-    with pytest.raises(train.ConfigChanged) as info:
+    with pytest.raises(workdir_lib.ConfigChanged) as info:
         train.fit(changed, trained, progress=False, num_steps=4)
     assert "optim.learning_rate: 0.001 -> 0.5" in str(info.value)
     assert "seed: 0 -> 7" in str(info.value) and "--allow-config-change" in str(info.value)
@@ -277,9 +284,9 @@ def test_resuming_with_other_settings_is_refused_naming_the_keys(trained):
 def test_an_incompatible_network_is_refused_even_when_changes_are_allowed(trained, capsys):
     before = _snapshot(trained)
     bigger = tiny_config(**{"model.descriptor_dim": 128})
-    with pytest.raises(train.ConfigChanged, match="do not fit .*descriptor"):
+    with pytest.raises(workdir_lib.ConfigChanged, match="do not fit .*descriptor"):
         train.fit(bigger, trained, progress=False, num_steps=4, allow_config_change=True)
-    with pytest.raises(train.ConfigChanged, match="do not fit"):
+    with pytest.raises(workdir_lib.ConfigChanged, match="do not fit"):
         train.fit(tiny_config(**{"optim.clip_norm": 1.0}), trained, progress=False,
                   num_steps=4, allow_config_change=True)
     assert _snapshot(trained) == before
@@ -297,15 +304,15 @@ def test_allowed_changes_resume_and_are_recorded(tmp_path):
     train.fit(tiny_config(num_steps=3, log_every=3, **{"data.num_workers": 1}), workdir,
               progress=False)
     assert config_lib.read(workdir / "config.json").num_steps == 3
-    assert not (workdir / train.CONFIG_CHANGES_FILE).exists()
+    assert not (workdir / workdir_lib.CONFIG_CHANGES_FILE).exists()
     state = train.fit(tiny_config(num_steps=4, **{"optim.learning_rate": 0.002}), workdir,
                       progress=False, allow_config_change=True)
     assert int(state.step) == 4
     assert config_lib.read(workdir / "config.json").optim.learning_rate == 0.002
     changes = [json.loads(line) for line in
-               (workdir / train.CONFIG_CHANGES_FILE).read_text().splitlines()]
+               (workdir / workdir_lib.CONFIG_CHANGES_FILE).read_text().splitlines()]
     assert changes == [{"step": 3, "changes": {"optim.learning_rate": [0.001, 0.002]}}]
-    assert not (workdir / train.LOCK_FILE).exists()
+    assert not (workdir / workdir_lib.LOCK_FILE).exists()
 
 
 def test_a_damaged_config_record_is_one_line(tmp_path, capsys):
@@ -325,7 +332,7 @@ def test_a_second_train_on_a_locked_workdir_is_told_who_holds_it(tmp_path):
     """The second run is a real process: the lock is the kernel's, per open file."""
     workdir = tmp_path / "run"
     workdir.mkdir()
-    lock = train._WorkdirLock(workdir)
+    lock = workdir_lib.WorkdirLock(workdir)
     try:
         result = subprocess.run(
             [sys.executable, "-m", "usp_jax", "train", "--data", "sample", "--workdir",
@@ -344,13 +351,13 @@ def test_a_lock_left_by_a_dead_process_does_not_block(tmp_path):
     workdir = tmp_path / "run"
     workdir.mkdir()
     # What a killed run leaves: the file, but no process holding its lock.
-    (workdir / train.LOCK_FILE).write_text("pid 1 on host gone\n")
-    lock = train._WorkdirLock(workdir)
-    assert f"pid {os.getpid()}" in (workdir / train.LOCK_FILE).read_text()
-    with pytest.raises(train.WorkdirError, match=f"in use by pid {os.getpid()}"):
-        train._WorkdirLock(workdir)
+    (workdir / workdir_lib.LOCK_FILE).write_text("pid 1 on host gone\n")
+    lock = workdir_lib.WorkdirLock(workdir)
+    assert f"pid {os.getpid()}" in (workdir / workdir_lib.LOCK_FILE).read_text()
+    with pytest.raises(workdir_lib.WorkdirError, match=f"in use by pid {os.getpid()}"):
+        workdir_lib.WorkdirLock(workdir)
     lock.release()
-    assert not (workdir / train.LOCK_FILE).exists()
+    assert not (workdir / workdir_lib.LOCK_FILE).exists()
 
 
 # ---------------------------------------------------------------------------------------------
@@ -358,7 +365,7 @@ def test_a_lock_left_by_a_dead_process_does_not_block(tmp_path):
 
 
 def _full_disk_after(step):
-    original = train.MetricsWriter.write
+    original = metrics_lib.MetricsWriter.write
 
     def write(self, done, metrics):
         if done > step:
@@ -370,20 +377,20 @@ def _full_disk_after(step):
 
 def test_a_full_disk_stops_the_run_in_one_error_and_the_workdir_resumes(tmp_path, monkeypatch):
     workdir = tmp_path / "run"
-    monkeypatch.setattr(train.MetricsWriter, "write", _full_disk_after(2))
-    with pytest.raises(train.WorkdirError, match="No space left on device.*checkpoint is step 2"):
+    monkeypatch.setattr(metrics_lib.MetricsWriter, "write", _full_disk_after(2))
+    with pytest.raises(workdir_lib.WorkdirError, match="No space left on device.*checkpoint is step 2"):
         train.fit(tiny_config(num_steps=4), workdir, progress=False)
     monkeypatch.undo()
     assert checkpoint.manager(workdir / "checkpoints").latest_step() == 2
     assert config_lib.read(workdir / "config.json") == tiny_config(num_steps=4)
-    assert not (workdir / train.LOCK_FILE).exists()
+    assert not (workdir / workdir_lib.LOCK_FILE).exists()
     # A row cut short by the full disk is dropped, and the run resumes.
     with open(workdir / "metrics.jsonl", "a") as file:
         file.write('{"step": 3, "lo')
-    assert [r["step"] for r in train.read_metrics(workdir)] == [1, 2]
+    assert [r["step"] for r in metrics_lib.read_metrics(workdir)] == [1, 2]
     state = train.fit(tiny_config(num_steps=4), workdir, progress=False)
     assert int(state.step) == 4
-    assert [r["step"] for r in train.read_metrics(workdir)] == [1, 2, 3, 4]
+    assert [r["step"] for r in metrics_lib.read_metrics(workdir)] == [1, 2, 3, 4]
 
 
 def test_orbax_write_errors_are_recognised_as_a_full_disk():
@@ -399,14 +406,14 @@ def test_orbax_write_errors_are_recognised_as_a_full_disk():
 
 FULL_DISK_SCRIPT = """
 import errno, os, sys
-from usp_jax import train
+from usp_jax.training import train
 from usp_jax.cli import main
-original = train.MetricsWriter.write
+original = metrics_lib.MetricsWriter.write
 def write(self, done, metrics):
     if done > 2:
         raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), self._jsonl.name)
     original(self, done, metrics)
-train.MetricsWriter.write = write
+metrics.MetricsWriter.write = write
 sys.exit(main(sys.argv[1:]))
 """
 

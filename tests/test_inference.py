@@ -7,10 +7,13 @@ import numpy as np
 import optax
 import pytest
 
-from usp_jax import checkpoint, evaluation, inference
+from usp_jax.inference import nms
+from usp_jax.training import checkpoint
+from usp_jax import evaluation
+from usp_jax import inference
 from usp_jax.config import Config
-from usp_jax.inference import Detector
-from usp_jax.model import ModelConfig, UnsuperPoint, fast_config, init_variables
+from usp_jax.inference import Detector, Features
+from usp_jax.core.model import ModelConfig, UnsuperPoint, fast_config, init_variables
 
 SMALL = ModelConfig(
     backbone_channels=(8, 8, 8, 8, 16, 16, 16, 16), head_channels=16, descriptor_dim=16
@@ -131,10 +134,10 @@ def test_radius_nms_matches_evaluation_nms_radius(radius, cell):
     scores = rng.uniform(size=m).astype(np.float32)
     valid = rng.uniform(size=m) < 0.9
     keep = np.asarray(
-        inference.radius_nms(keypoints, scores, valid, cells_h, cells_w, radius, cell)
+        nms.radius_nms(keypoints, scores, valid, cells_h, cells_w, radius, cell)
     )
     candidates = np.flatnonzero(valid)
-    expected = candidates[evaluation.nms_radius(keypoints[candidates], scores[candidates], radius)]
+    expected = candidates[nms.radius_nms_host(keypoints[candidates], scores[candidates], radius)]
     assert 0 < len(expected) < len(candidates)  # the test exercises suppression
     np.testing.assert_array_equal(np.flatnonzero(keep), np.sort(expected))
 
@@ -145,7 +148,7 @@ def test_detector_nms_keeps_points_apart_like_evaluation(detector, variables, im
     kept = Detector(variables, SMALL, nms_radius=radius).detect(image[:37, :53])
     distances = np.linalg.norm(kept.keypoints[:, None] - kept.keypoints[None], axis=-1)
     assert np.all(distances[~np.eye(len(distances), dtype=bool)] > radius)
-    expected = evaluation.nms_radius(candidates.keypoints, candidates.scores, radius)
+    expected = nms.radius_nms_host(candidates.keypoints, candidates.scores, radius)
     assert len(expected) < len(candidates.scores)
     assert_same_features(kept, evaluation.Features(*(a[expected] for a in candidates)))
 
@@ -170,7 +173,7 @@ def test_upsample_with_nms_and_padding_keeps_points_inside_and_apart(variables, 
     candidates = Detector(variables, SMALL, upsample=2).detect(odd)
     assert np.all(inside(candidates.keypoints, 37, 53))
     kept = Detector(variables, SMALL, upsample=2, nms_radius=4).detect(odd)
-    expected = evaluation.nms_radius(candidates.keypoints, candidates.scores, 4.0)
+    expected = nms.radius_nms_host(candidates.keypoints, candidates.scores, 4.0)
     assert len(expected) < len(candidates.scores)
     assert_same_features(kept, evaluation.Features(*(a[expected] for a in candidates)))
 
@@ -348,11 +351,11 @@ def test_exported_detector_runs_without_the_model(
 
 
 def test_as_method_returns_every_candidate_for_uniform_evaluation(variables, image):
-    method = inference.as_method(Detector(variables, SMALL, top_n=3, nms_radius=10, border=4))
+    method = evaluation.as_method(Detector(variables, SMALL, top_n=3, nms_radius=10, border=4))
     features = method.detect(image)
     assert method.name == "UnsuperPoint" and method.norm == cv2.NORM_L2
     assert len(features.scores) == (40 // 8) * (56 // 8)
-    upsampled = inference.as_method(Detector(variables, SMALL, top_n=3, upsample=2))
+    upsampled = evaluation.as_method(Detector(variables, SMALL, top_n=3, upsample=2))
     assert len(upsampled.detect(image).scores) == (40 // 4) * (56 // 4)
 
 
@@ -377,3 +380,30 @@ def test_to_cv2_points_match_and_give_a_homography(detector, photo):
     corners = np.array([[0, 0], [0, height - 1], [width - 1, 0], [width - 1, height - 1]])
     error = evaluation.project_points(corners, homography) - evaluation.project_points(corners, shift)
     assert np.linalg.norm(error, axis=1).mean() < 2
+
+
+class _CornerDetector(Detector):
+    """A Detector whose network finds one keypoint on the first and one on the last pixel centre
+    of whatever image it is given, and records that image's shape."""
+
+    def __init__(self, max_side):
+        self.max_side = max_side
+
+    def _call(self, padded, sizes, top_n):
+        self.shape = tuple(sizes[0])
+        height, width = sizes[0]
+        keypoints = np.array([[0, 0], [width - 1, height - 1]], np.float32)
+        return [Features(keypoints, np.ones(2, np.float32), np.zeros((2, 4), np.float32))]
+
+
+@pytest.mark.parametrize("max_side, detected_shape", [(0, (600, 800)), (1000, (600, 800)),
+                                                      (400, (300, 400))])
+def test_detection_on_a_smaller_copy_returns_keypoints_in_the_originals_pixels(max_side,
+                                                                               detected_shape):
+    detector = _CornerDetector(max_side)
+    features = detector.detect(np.zeros((600, 800, 3), np.uint8))
+    assert detector.shape[:2] == detected_shape
+    # Halved by area averaging, the first pixel of the copy covers pixels 0-1 of the original
+    # (centre 0.5) and the last one pixels 798-799 (centre 798.5).
+    expected = [[0, 0], [799, 599]] if detected_shape == (600, 800) else [[0.5, 0.5], [798.5, 598.5]]
+    np.testing.assert_allclose(features.keypoints, expected)

@@ -6,8 +6,10 @@ import numpy as np
 import pytest
 
 import usp_jax
-from usp_jax import correspondence, geometry, losses
-from usp_jax.model import ModelConfig, Predictions, UnsuperPoint, init_variables
+from usp_jax.core import correspondence
+from usp_jax.core import geometry
+from usp_jax.core import losses
+from usp_jax.core.model import ModelConfig, Predictions, UnsuperPoint, init_variables
 
 
 def test_uniform_loss_is_eq10_on_sorted_values():
@@ -195,7 +197,7 @@ def test_similarity_metrics_are_the_mean_over_positive_and_negative_pairs():
 
 
 def test_cpu_photos_descriptor_weights_keep_the_papers_balance_at_128x160():
-    """lambda_d x (positive pairs) / (negative pairs) at 128x160 with experiments/cpu_photos.py
+    """lambda_d x (positive pairs) / (negative pairs) at 128x160 with experiments/paper_network.py
     is within 1.5x of its value at the paper's 240x320 with the paper's weights (with lambda_d
     = 250 at 128x160 it is ~4x off and the descriptors collapse)."""
     from usp_jax import config as config_lib
@@ -213,7 +215,7 @@ def test_cpu_photos_descriptor_weights_keep_the_papers_balance_at_128x160():
         return lambda_d * np.sum(c * visible) / np.sum((1 - c) * visible)
 
     paper = config_lib.paper().loss
-    cpu = config_lib.load(str(pathlib.Path(__file__).parents[1] / "experiments" / "cpu_photos.py")).loss
+    cpu = config_lib.load(str(pathlib.Path(__file__).parents[1] / "experiments" / "paper_network.py")).loss
     at_paper_size = balance(240, 320, paper.lambda_d)
     assert 1 / 1.5 < balance(128, 160, cpu.lambda_d) / at_paper_size < 1.5
     assert balance(128, 160, paper.lambda_d) / at_paper_size > 3

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 import scipy.ndimage
 
-from usp_jax.model import (
+from usp_jax.core.model import (
     CELL,
     ModelConfig,
     UnsuperPoint,

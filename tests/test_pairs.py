@@ -1,11 +1,11 @@
-"""Tests of usp_jax.pairs: HPatches layout, ground-truth homographies that register the images, errors."""
+"""Tests of usp_jax.evaluation.pairs: HPatches layout, ground-truth homographies that register the images, errors."""
 
 import cv2
 import numpy as np
 import pytest
 import skimage.data
 
-from usp_jax.pairs import make_pairs, pair_rotations
+from usp_jax.evaluation.pairs import make_pairs, pair_rotations
 
 HEIGHT, WIDTH = 60, 80
 

@@ -4,7 +4,7 @@ import cv2
 import numpy as np
 import skimage.data
 
-from usp_jax import plotting
+from usp_jax.evaluation import plotting
 from usp_jax.evaluation import Features, match_and_estimate, project_points
 
 HOMOGRAPHY = np.array([[1.0, 0.05, 3.0], [-0.02, 1.0, 2.0], [0.0, 0.0, 1.0]])

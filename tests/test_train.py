@@ -10,9 +10,16 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from usp_jax import augment, checkpoint, data, geometry, train
+from usp_jax.training import crops
+from usp_jax.training import metrics as metrics_lib
+from usp_jax.training import step as step_lib
+from usp_jax.core import augment
+from usp_jax.training import checkpoint
+from usp_jax.training import data
+from usp_jax.core import geometry
+from usp_jax.training import train
 from usp_jax import config as config_lib
-from usp_jax.model import ModelConfig
+from usp_jax.core.model import ModelConfig
 
 SMALL_MODEL = ModelConfig(backbone_channels=(8, 8, 16, 16, 16, 16, 32, 32), head_channels=32,
                           descriptor_dim=32)
@@ -42,7 +49,7 @@ def test_short_run_on_real_photos_lowers_the_loss(tmp_path):
     cfg = tiny_config(num_steps=60, checkpoint_every=60, batch_size=4,
                       **{"data.height": 64, "data.width": 96, "optim.learning_rate": 3e-3})
     train.fit(cfg, tmp_path, progress=False)
-    rows = train.read_metrics(tmp_path)
+    rows = metrics_lib.read_metrics(tmp_path)
     assert [r["step"] for r in rows] == list(range(1, 61))
     assert mean_of(rows[-10:], "loss") < 0.8 * mean_of(rows[:10], "loss")
     assert (tmp_path / "config.json").exists() and list((tmp_path / "tensorboard").iterdir())
@@ -62,7 +69,7 @@ def test_fitting_one_real_photo_pair_pulls_its_point_pairs_together(tmp_path, ph
         "homography.scaling": 0, "homography.max_angle": 0, "homography.perspective": 0,
         "homography.translation": 0})
     train.fit(cfg, tmp_path / "run", progress=False)
-    rows = train.read_metrics(tmp_path / "run")
+    rows = metrics_lib.read_metrics(tmp_path / "run")
     # Measured: mean d_k 2.40 -> 0.87 px and K 50 -> 70 (first vs last 10 steps).
     assert mean_of(rows[-10:], "usp/mean_d") < 0.6 * mean_of(rows[:10], "usp/mean_d")
     assert mean_of(rows[-10:], "usp/K") > 1.15 * mean_of(rows[:10], "usp/K")
@@ -82,12 +89,12 @@ def test_resuming_equals_an_uninterrupted_run(tmp_path):
 
 def test_learning_rate_follows_warmup_then_cosine_decay_to_zero():
     cfg = config_lib.OptimConfig(learning_rate=1e-3, warmup_steps=10, decay_steps=100)
-    schedule = train.learning_rate(cfg)
+    schedule = step_lib.learning_rate(cfg)
     steps = np.array([0, 5, 10, 35, 60, 110, 500])
     after = np.clip(steps - 10, 0, 100)
     expected = np.where(steps < 10, 1e-3 * steps / 10, 0.5e-3 * (1 + np.cos(np.pi * after / 100)))
     np.testing.assert_allclose([float(schedule(s)) for s in steps], expected, rtol=1e-5, atol=1e-9)
-    constant = train.learning_rate(config_lib.OptimConfig(learning_rate=2e-3))
+    constant = step_lib.learning_rate(config_lib.OptimConfig(learning_rate=2e-3))
     assert float(constant(0)) == float(constant(10**6)) == pytest.approx(2e-3)
 
 
@@ -122,11 +129,11 @@ def test_a_save_killed_midway_resumes_from_the_last_complete_checkpoint(tmp_path
 def test_non_finite_loss_stops_with_a_message_and_keeps_the_last_good_checkpoint(tmp_path):
     train.fit(tiny_config(), tmp_path, progress=False, num_steps=2)
     exploding = tiny_config(**{"optim.learning_rate": 1e38})
-    with pytest.raises(train.TrainingDiverged, match="non-finite at step .*checkpoint: step 2"):
+    with pytest.raises(metrics_lib.TrainingDiverged, match="non-finite at step .*checkpoint: step 2"):
         train.fit(exploding, tmp_path, progress=False, num_steps=6, allow_config_change=True)
     mngr = checkpoint.manager(tmp_path / "checkpoints")
     assert mngr.latest_step() == 2
-    restored = checkpoint.restore_state(mngr, train.create_state(tiny_config()))
+    restored = checkpoint.restore_state(mngr, step_lib.create_state(tiny_config()))
     assert all(np.all(np.isfinite(p)) for p in params_of(restored))
 
 
@@ -139,12 +146,12 @@ def test_missing_data_source_stops_at_once_naming_it(tmp_path):
 def test_init_weights_start_the_run_from_an_exported_model(tmp_path):
     from usp_jax import inference
 
-    source = train.create_state(tiny_config(seed=7))
+    source = step_lib.create_state(tiny_config(seed=7))
     weights = tmp_path / "start.npz"
     inference.save_weights(
         weights, {"params": source.params, "batch_stats": source.batch_stats}, SMALL_MODEL
     )
-    state = train.create_state(tiny_config(seed=0, init_weights=str(weights)))
+    state = step_lib.create_state(tiny_config(seed=0, init_weights=str(weights)))
     # float16 storage: equal to the source within half precision, unlike seed 0's random init.
     for got, want in zip(params_of(state), params_of(source)):
         np.testing.assert_allclose(got, want, rtol=1e-3, atol=1e-4)
@@ -157,10 +164,10 @@ def test_init_weights_of_another_network_is_a_clear_error(tmp_path):
     other = ModelConfig(backbone_channels=(4, 4, 8, 8, 8, 8, 16, 16), head_channels=16,
                         descriptor_dim=16)
     weights = tmp_path / "other.npz"
-    variables = train.init_variables(jax.random.PRNGKey(0), other)
+    variables = step_lib.init_variables(jax.random.PRNGKey(0), other)
     inference.save_weights(weights, variables, other)
     with pytest.raises(ValueError, match="network"):
-        train.create_state(tiny_config(init_weights=str(weights)))
+        step_lib.create_state(tiny_config(init_weights=str(weights)))
 
 
 @pytest.mark.parametrize("bad", ["init", "data"])
@@ -180,13 +187,13 @@ def test_init_weights_load_into_a_run_that_differs_only_in_settings_that_shape_n
     from usp_jax import inference
 
     weights = tmp_path / "start.npz"
-    source = train.create_state(tiny_config(seed=7))
+    source = step_lib.create_state(tiny_config(seed=7))
     inference.save_weights(
         weights, {"params": source.params, "batch_stats": source.batch_stats}, SMALL_MODEL
     )
     changes = {"init_weights": str(weights), "model.dtype": "bfloat16",
                "model.batch_norm_momentum": 0.99, "model.position_init_scale": 1.0}
-    state = train.create_state(tiny_config(**changes))
+    state = step_lib.create_state(tiny_config(**changes))
     for got, want in zip(params_of(state), params_of(source)):
         np.testing.assert_allclose(got, want, rtol=1e-3, atol=1e-4)
 
@@ -204,11 +211,11 @@ jax.config.update("jax_num_cpu_devices", int(sys.argv[1]))
 import numpy as np
 sys.path.insert(0, sys.argv[2])
 from test_train import tiny_config
-from usp_jax import train
+from usp_jax.training import train
 cfg = tiny_config(batch_size=4)
-mesh = train.data_mesh()
-step = train.jit_train_step(cfg, mesh)
-state = jax.device_put(train.create_state(cfg), jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec()))
+mesh = step_lib.data_mesh()
+step = step_lib.jit_train_step(cfg, mesh)
+state = jax.device_put(step_lib.create_state(cfg), jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec()))
 images = np.random.default_rng(0).integers(0, 256, size=(3, 4, 48, 64, 3), dtype=np.uint8)
 losses, grad_norms = [], []
 for batch in images:
@@ -251,27 +258,27 @@ def test_four_devices_compute_what_one_device_computes():
 
 def test_collapse_warnings_name_the_collapse_and_its_fix():
     healthy = {"pred/score_std": 0.25, "pred/score_mean": 0.5, "desc/sim_negative": 0.2}
-    assert train.collapse_warnings(healthy) == {}
-    scores = train.collapse_warnings({**healthy, "pred/score_std": 0.003, "pred/score_mean": 0.005})
+    assert metrics_lib.collapse_warnings(healthy) == {}
+    scores = metrics_lib.collapse_warnings({**healthy, "pred/score_std": 0.003, "pred/score_mean": 0.005})
     assert list(scores) == ["scores"] and "alpha_score_mean" in scores["scores"]
     # Near-constant scores at 1/2 are how a run starts before positions are repeatable.
-    assert train.collapse_warnings({**healthy, "pred/score_std": 0.015}) == {}
-    descriptors = train.collapse_warnings({**healthy, "desc/sim_negative": 0.97})
+    assert metrics_lib.collapse_warnings({**healthy, "pred/score_std": 0.015}) == {}
+    descriptors = metrics_lib.collapse_warnings({**healthy, "desc/sim_negative": 0.97})
     assert list(descriptors) == ["descriptors"] and "lambda_d" in descriptors["descriptors"]
-    ramp = train.collapse_warnings({**healthy, "pred/score_position_r2": 0.9})
+    ramp = metrics_lib.collapse_warnings({**healthy, "pred/score_position_r2": 0.9})
     assert list(ramp) == ["score ramp"] and "alpha_uni_score" in ramp["score ramp"]
 
 
 def test_score_position_r2_is_one_for_a_ramp_and_small_for_content():
     grid = np.stack(np.meshgrid(np.arange(20.0), np.arange(15.0)), -1).reshape(1, -1, 2)
     ramp = 0.02 * grid[..., 0] + 0.05 * grid[..., 1]
-    assert float(train.score_position_r2(jnp.asarray(ramp), jnp.asarray(grid))) == pytest.approx(1.0)
+    assert float(step_lib.score_position_r2(jnp.asarray(ramp), jnp.asarray(grid))) == pytest.approx(1.0)
     noise = np.random.default_rng(0).uniform(size=ramp.shape)
-    assert float(train.score_position_r2(jnp.asarray(noise), jnp.asarray(grid))) < 0.05
+    assert float(step_lib.score_position_r2(jnp.asarray(noise), jnp.asarray(grid))) < 0.05
     # Matches NumPy's correlation coefficients.
     mixed = ramp + noise
     expected = sum(np.corrcoef(mixed[0], grid[0, :, i])[0, 1] ** 2 for i in (0, 1))
-    got = float(train.score_position_r2(jnp.asarray(mixed), jnp.asarray(grid)))
+    got = float(step_lib.score_position_r2(jnp.asarray(mixed), jnp.asarray(grid)))
     assert got == pytest.approx(expected, rel=1e-4)
 
 
@@ -284,7 +291,7 @@ NEUTRAL_LIGHT = augment.PhotometricConfig(brightness=0, contrast=0, saturation=0
 def test_window_branches_turn_b_by_the_sampled_homography_and_fill_it_from_the_whole_window(
     photo, angle
 ):
-    side = data.context_side(48, 64)
+    side = crops.context_side(48, 64)
     origin_x, origin_y = geometry.window_origin(48, 64, (side, side))
     # A real photo with no black pixel (so that 0 means "masked"), its top 12 rows padding.
     rgb = 0.1 + 0.9 * cv2.resize(photo, (side, side), interpolation=cv2.INTER_AREA) / 255.0
@@ -294,7 +301,7 @@ def test_window_branches_turn_b_by_the_sampled_homography_and_fill_it_from_the_w
     windows = jnp.asarray(np.concatenate([rgb, alpha[..., None]], -1)[None])
     pure_turn = geometry.HomographyConfig(patch_ratio=1.0, scaling=0.0, perspective=0.0,
                                           translation=0.0, rotation_range=(angle, angle))
-    images_a, images_b, homographies, valid = (np.asarray(x)[0] for x in train.make_window_branches(
+    images_a, images_b, homographies, valid = (np.asarray(x)[0] for x in step_lib.make_window_branches(
         jax.random.PRNGKey(0), windows, 48, 64, pure_turn, NEUTRAL_LIGHT))
 
     turn = np.vstack([cv2.getRotationMatrix2D((31.5, 23.5), angle, 1.0), [0, 0, 1]])
@@ -325,7 +332,7 @@ def test_upright_branches_draw_what_they_drew_before_the_context_window_existed(
                                             [-6.0852289e-01, 1.2928408e+00, 1.1539849e+01],
                                             [-1.1136544e-02, 9.0182815e-03, 1.0]], rtol=1e-5, atol=1e-6)
     images = jnp.asarray(np.random.default_rng(0).uniform(size=(2, 48, 64, 3)).astype(np.float32))
-    images_a, images_b, _ = train.make_branches(jax.random.PRNGKey(1), images,
+    images_a, images_b, _ = step_lib.make_branches(jax.random.PRNGKey(1), images,
                                                 geometry.HomographyConfig(), augment.PhotometricConfig())
     assert float(images_a.sum()) == pytest.approx(10429.866, rel=1e-4)
     assert float(images_b.sum()) == pytest.approx(8377.0986, rel=1e-4)
@@ -342,6 +349,6 @@ def test_a_run_on_context_windows_trains_and_logs_how_much_of_b_is_real(tmp_path
     cfg = tiny_config(num_steps=2, **{"data.context_window": True,
                                       "homography.rotation_range": "(-180, 180)"})
     train.fit(cfg, tmp_path, progress=False)
-    rows = train.read_metrics(tmp_path)
+    rows = metrics_lib.read_metrics(tmp_path)
     assert [r["step"] for r in rows] == [1, 2]
     assert all(np.isfinite(r["loss"]) and 0.5 < r["data/valid_b"] <= 1.0 for r in rows)

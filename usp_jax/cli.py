@@ -1,4 +1,5 @@
 """The ``usp-jax`` command: train, evaluate, make-pairs, benchmark, detect, match, export and demo.
+Each command parses its options, checks its outputs can be written, and calls the Python API.
 
 Every failure a user can cause (a missing folder, a corrupt image, a bad override, an
 unwritable output, a full disk) ends in one line on stderr and exit status 2, never a
@@ -17,9 +18,10 @@ import os
 import pathlib
 import sys
 import tempfile
-import time
 
 import numpy as np
+
+from usp_jax.inference.detector import MAX_SIDE
 
 _USER_ERRORS = (FileNotFoundError, ValueError, NotADirectoryError, IsADirectoryError)
 # OSErrors a user's paths or disk cause: reported in one line like the errors above.
@@ -27,10 +29,9 @@ _USER_ERRNOS = frozenset({
     errno.ENOENT, errno.EACCES, errno.EPERM, errno.EROFS, errno.ENOSPC, errno.EDQUOT,
     errno.EEXIST, errno.ENOTDIR, errno.EISDIR, errno.ENAMETOOLONG, errno.EFBIG, errno.ELOOP,
 })
-# Longest side `detect` and `match` run the network at (1280x960 for a 4:3 photo).
-MAX_SIDE = 1280
 # The largest --upsample and --res side: beyond, the activations alone outgrow any memory.
 MAX_UPSAMPLE = 8
+
 MAX_RESOLUTION = 16384
 
 
@@ -122,7 +123,7 @@ def _check_output_file(path: str | None, what: str) -> None:
 
 def _check_output_folder(path: str | None, what: str) -> None:
     """Raises ValueError unless ``path`` is, or can be made as, a writable folder."""
-    from usp_jax.paths import folder_problem
+    from usp_jax.training.workdir import folder_problem
 
     problem = folder_problem(path) if path else None
     if problem:
@@ -130,7 +131,7 @@ def _check_output_folder(path: str | None, what: str) -> None:
 
 
 def _load_detector(args, **options):
-    from usp_jax.inference import Detector
+    from usp_jax.inference.detector import Detector
 
     options.setdefault("upsample", getattr(args, "upsample", 1))
     if getattr(args, "weights", None):
@@ -139,8 +140,8 @@ def _load_detector(args, **options):
 
 
 def cmd_train(args) -> None:
-    from usp_jax import config as config_lib
-    from usp_jax import train
+    from usp_jax.training import config as config_lib
+    from usp_jax.training import train
 
     cfg = config_lib.load(args.config)
     overrides = list(args.overrides)
@@ -164,68 +165,33 @@ def cmd_train(args) -> None:
     print(f"done: step {int(state.step)}; checkpoints in {pathlib.Path(args.workdir) / 'checkpoints'}")
 
 
-def _methods(args, detector):
-    from usp_jax import baselines
-    from usp_jax.inference import as_method
-
-    methods = [as_method(detector)] if detector is not None else []
-    # The evaluation applies NMS and the shared-view filter before its own top-k, to
-    # UnsuperPoint's full candidate set; a baseline cut at exactly top-k before them would be
-    # left with fewer points than the model on every viewpoint pair.
-    n = 4 * args.top
-    for name in filter(None, (b.strip() for b in args.baselines.split(","))):
-        methods.append(baselines.opencv_method(name, n))
-    return methods
-
-
 def cmd_evaluate(args) -> None:
-    from usp_jax import evaluation
+    from usp_jax.evaluation import plotting, protocol
 
     _check_output_file(args.json, "--json")
     _check_output_folder(args.plots, "--plots")
     detector = None if args.baselines_only else _load_detector(args)
     height, width = args.res
-    methods = _methods(args, detector)
-    results = evaluation.evaluate(
+    baselines = [name.strip() for name in args.baselines.split(",") if name.strip()]
+    methods = protocol.methods(detector, baselines, args.top)
+    results = protocol.evaluate(
         methods, args.hpatches, height=height, width=width, top_k=args.top, nms=args.nms,
         progress=not args.no_progress,
     )
     enlarged = f", model on {args.upsample}x enlarged images" if args.upsample > 1 else ""
     print(f"{args.hpatches} at {height}x{width}, top {args.top} points, NMS {args.nms}{enlarged}")
-    print(evaluation.format_table(results))
+    print(protocol.format_table(results))
     if args.json:
-        pathlib.Path(args.json).write_text(json.dumps(evaluation.to_json(results), indent=1))
+        pathlib.Path(args.json).write_text(json.dumps(protocol.to_json(results), indent=1))
         print(f"wrote {args.json}")
     if args.plots and methods:
-        _plot_first_pair(methods[0], args.hpatches, args.plots, args.res, args.top, args.nms)
-
-
-def _plot_first_pair(method, root, out_dir, res, top, nms):
-    """Keypoints and matches (paper Figures 7-8) of ``method`` on the last (hardest) pair of the
-    first viewpoint scene, or of the first scene when there is none: the points and matches
-    its HA comes from (NMS, shared-view filter, top-k)."""
-    from usp_jax import evaluation, plotting
-
-    out_dir = pathlib.Path(out_dir)
-    out_dir.mkdir(parents=True, exist_ok=True)
-    files = evaluation.scan_sequences(root)
-    first = next((f for f in files if f.split == "v"), files[0]).scene
-    pair = evaluation.read_pair([f for f in files if f.scene == first][-1])
-    im1, im2, h = evaluation.resize_pair(pair.image1, pair.image2, pair.homography, *res)
-    f1, f2 = (evaluation.detect(method, im, nms) for im in (im1, im2))
-    f1, f2, matching = evaluation.homography_matching(
-        f1, f2, h, im1.shape[:2], im2.shape[:2], top, method.norm
-    )
-    stem = f"{method.name}_{pair.scene}_1_{pair.index}"
-    plotting.plot_keypoints(im1, f1.keypoints, im2, f2.keypoints, out_dir / f"{stem}_keypoints.png",
-                            homography=h)
-    plotting.plot_matches(im1, im2, f1.keypoints, f2.keypoints, matching.matches,
-                          matching.inliers, h, matching.homography, out_dir / f"{stem}_matches.png")
-    print(f"wrote {out_dir / (stem + '_matches.png')}")
+        path = plotting.plot_example_pair(methods[0], args.hpatches, args.plots, args.res,
+                                          args.top, args.nms)
+        print(f"wrote {path}")
 
 
 def cmd_make_pairs(args) -> None:
-    from usp_jax.pairs import make_pairs
+    from usp_jax.evaluation.pairs import make_pairs
 
     _check_output_folder(args.out, "--out")
     scenes = make_pairs(args.images, args.out, seed=args.seed, size=args.size,
@@ -235,8 +201,9 @@ def cmd_make_pairs(args) -> None:
 
 
 def cmd_benchmark(args) -> None:
-    from usp_jax import benchmark
-    from usp_jax.inference import PRETRAINED, Detector
+    from usp_jax.evaluation import benchmark
+    from usp_jax.inference.detector import Detector
+    from usp_jax.inference.weights import PRETRAINED
 
     _check_output_file(args.json, "--json")
     if args.weights or args.checkpoint:
@@ -253,38 +220,14 @@ def cmd_benchmark(args) -> None:
         print(f"wrote {args.json}")
 
 
-def _detect_at_most(detector, image, max_side: int, top_n: int):
-    """Features of ``image`` detected at most ``max_side`` px on its longer side (0: native),
-    keypoints mapped back to the original's pixels.
-
-    A 12-megapixel phone photo at native size takes gigabytes of activations and seconds per
-    image on a CPU, and the network was trained on 240x320 views anyway. ``cv2.resize`` scales
-    about pixel corners, so a point x' of the resized image is x = (x' + 0.5) * W / W' - 0.5.
-    """
-    import cv2
-
-    from usp_jax import evaluation
-
-    height, width = image.shape[:2]
-    scale = max(height, width) / max_side if max_side else 1.0
-    if scale <= 1:
-        return detector.detect(image, top_n=top_n)
-    size = (max(round(width / scale), 8), max(round(height / scale), 8))
-    features = detector.detect(cv2.resize(image, size, interpolation=cv2.INTER_AREA), top_n=top_n)
-    factors = np.array([width / size[0], height / size[1]], np.float32)
-    return evaluation.Features(
-        (features.keypoints + 0.5) * factors - 0.5, features.scores, features.descriptors
-    )
-
-
 def cmd_detect(args) -> None:
-    from usp_jax import data, plotting
+    from usp_jax.evaluation import plotting
+    from usp_jax.inference.images import read_image
 
     _check_output_file(args.out, "--out")
     _check_output_file(args.json, "--json")
-    detector = _load_detector(args, nms_radius=args.nms)
-    image = data.read_image(args.image)
-    features = _detect_at_most(detector, image, args.max_side, args.top)
+    detector = _load_detector(args, nms_radius=args.nms, max_side=args.max_side)
+    features = detector.detect(image := read_image(args.image), top_n=args.top)
     print(f"{args.image}: {len(features.keypoints)} keypoints")
     if args.out:
         plotting.plot_keypoints(image, features.keypoints, image, features.keypoints, args.out)
@@ -298,21 +241,21 @@ def cmd_detect(args) -> None:
 
 
 def cmd_match(args) -> None:
-    from usp_jax import data, evaluation, plotting
+    from usp_jax.evaluation import plotting
+    from usp_jax.inference import matching as matching_lib
+    from usp_jax.inference.images import read_image
 
     _check_output_file(args.out, "--out")
     _check_output_file(args.json, "--json")
-    detector = _load_detector(args, nms_radius=args.nms)
-    image1, image2 = data.read_image(args.image1), data.read_image(args.image2)
-    features1, features2 = (
-        _detect_at_most(detector, image, args.max_side, args.top) for image in (image1, image2)
-    )
-    matching = evaluation.match_and_estimate(features1, features2)
+    detector = _load_detector(args, nms_radius=args.nms, max_side=args.max_side)
+    image1, image2 = read_image(args.image1), read_image(args.image2)
+    features1, features2 = (detector.detect(image, top_n=args.top) for image in (image1, image2))
+    matching = matching_lib.match_and_estimate(features1, features2)
     print(
         f"{len(features1.keypoints)} and {len(features2.keypoints)} keypoints,"
         f" {len(matching.matches)} mutual nearest-neighbour matches,"
         f" {int(matching.inliers.sum())} RANSAC inliers"
-        f" ({evaluation.RANSAC_THRESHOLD:g} px)"
+        f" ({matching_lib.RANSAC_THRESHOLD:g} px)"
     )
     if matching.homography is None:
         print("no homography: fewer than 4 matches, or RANSAC found none")
@@ -336,7 +279,8 @@ def cmd_match(args) -> None:
 
 
 def cmd_export(args) -> None:
-    from usp_jax import inference
+    from usp_jax.inference import export, weights
+    from usp_jax.inference.detector import Detector
 
     if not (args.save_weights or args.artifact):
         raise ValueError("nothing to export: give --save-weights FILE.npz and/or --artifact FILE")
@@ -344,66 +288,20 @@ def cmd_export(args) -> None:
     _check_output_file(args.artifact, "--artifact")
     detector = _load_detector(args)
     if args.save_weights:
-        inference.save_weights(args.save_weights, detector.variables, detector.model_config)
+        weights.save_weights(args.save_weights, detector.variables, detector.model_config)
         print(f"wrote {args.save_weights} (float16)")
     if args.artifact:
-        detector = inference.Detector(detector.variables, detector.model_config,
-                                      top_n=args.top, nms_radius=args.nms,
-                                      upsample=detector.upsample)
-        inference.export(detector, args.artifact, *args.res)
+        detector = Detector(detector.variables, detector.model_config, top_n=args.top,
+                            nms_radius=args.nms, upsample=detector.upsample)
+        export.export(detector, args.artifact, *args.res)
         print(f"wrote {args.artifact} (jax.export, uint8 [b, {args.res[0]}, {args.res[1]}, 3])")
 
 
-# Package photos held out of the shipped weights' training corpus (experiments/build_corpus.py).
-DEMO_PHOTOS = ("coffee.png", "chelsea.png", "rocket.jpg")
-
-
 def cmd_demo(args) -> None:
-    """Shipped weights (or a short training on the bundled photos), pairs from bundled photos,
-    the evaluation table against ORB and SIFT, and a matches PNG."""
-    import skimage.data
+    from usp_jax.quickstart import demo
 
-    from usp_jax import evaluation
-    from usp_jax.inference import DEFAULT_PRETRAINED, Detector
-    from usp_jax.pairs import make_pairs
-
-    start = time.perf_counter()
     _check_output_folder(args.out, "--out")
-    out = pathlib.Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
-    try:
-        detector = Detector.pretrained(args.weights)
-        print(f"model: the {args.weights or DEFAULT_PRETRAINED!r} weights shipped with usp-jax")
-        about = "photos the shipped model never saw"
-    except FileNotFoundError:
-        if args.weights:  # asked for by name: say it is missing rather than train instead
-            raise
-        detector = _demo_training(out / "train")
-        about = "photos the short training saw too (no shipped weights)"
-    photos_dir = pathlib.Path(skimage.data.__file__).parent
-    print("[2/3] building HPatches-layout pairs from the bundled photos", file=sys.stderr)
-    make_pairs([photos_dir / name for name in DEMO_PHOTOS], out / "pairs", seed=0, size=(480, 640),
-               progress=True)
-    print("[3/3] evaluating against ORB and SIFT", file=sys.stderr)
-    ns = argparse.Namespace(top=300, nms=0, baselines="orb,sift")
-    methods = _methods(ns, detector)
-    results = evaluation.evaluate(methods, out / "pairs", height=240, width=320, top_k=300, nms=0,
-                                  progress=True)
-    print(f"\n240x320, top 300 points, pairs made from {about}")
-    print(evaluation.format_table(results))
-    _plot_first_pair(methods[0], out / "pairs", out, (240, 320), 300, 0)
-    print(f"demo finished in {time.perf_counter() - start:.0f} s; outputs in {out}")
-
-
-def _demo_training(workdir: pathlib.Path):
-    from usp_jax import config as config_lib
-    from usp_jax import train
-    from usp_jax.inference import Detector
-
-    print("[1/3] no shipped weights: a short training on the bundled photos", file=sys.stderr)
-    cfg = config_lib.override(config_lib.cpu(), ["num_steps=150", "checkpoint_every=150"])
-    train.fit(cfg, workdir)
-    return Detector.from_checkpoint(workdir)
+    demo(args.out, args.weights)
 
 
 class _Parser(argparse.ArgumentParser):
@@ -523,7 +421,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=cmd_export)
 
     p = sub.add_parser("demo", help="the whole pipeline on bundled photos, offline, in minutes")
-    p.add_argument("--out", default=str(pathlib.Path(tempfile.gettempdir()) / "usp-jax-demo"))
+    p.add_argument("--out", default=str(pathlib.Path(tempfile.gettempdir()) / "usp-jax-demo"),
+                   help="folder for the pairs and PNGs")
     _add_weights_name(p)
     p.set_defaults(func=cmd_demo)
     return parser
@@ -579,7 +478,8 @@ def _main(argv: list[str] | None) -> int:
     # its threads; train reports it again as one line naming the last complete checkpoint.
     if not args.verbose:
         logging.getLogger("absl").setLevel(logging.CRITICAL)
-    from usp_jax.train import TrainingDiverged, WorkdirError
+    from usp_jax.training.metrics import TrainingDiverged
+    from usp_jax.training.workdir import WorkdirError
 
     try:
         args.func(args)

@@ -1,0 +1,68 @@
+"""The package's layout: detection loads no training or evaluation code, imports go one way
+(docs/modules.md), and no module outgrows one concept."""
+
+import ast
+import pathlib
+import subprocess
+import sys
+
+import usp_jax
+
+PACKAGE = pathlib.Path(usp_jax.__file__).parent
+# Layer of each part of the package; a module may import its own layer and those below it.
+LAYERS = {"core": 0, "inference": 1, "training": 2, "evaluation": 2, "app": 3}
+HEAVY = ("orbax", "grain", "tqdm", "matplotlib", "optax", "tensorflow", "tensorboardX")
+
+
+def _layer(module: str) -> str:
+    """The layer of ``usp_jax.PART...``; ``usp_jax.config`` is training's, under its public name."""
+    part = module.split(".")[1] if "." in module else "app"
+    return {"config": "training"}.get(part, part if part in LAYERS else "app")
+
+
+def test_detection_imports_no_training_evaluation_or_cli_code_and_none_of_their_libraries():
+    script = (
+        "import sys, numpy as np, usp_jax\n"
+        "from usp_jax.core.model import ModelConfig, init_variables\n"
+        "import jax\n"
+        "config = ModelConfig(backbone_channels=(8,) * 4 + (16,) * 4, head_channels=16,"
+        " descriptor_dim=16)\n"
+        "detector = usp_jax.Detector(init_variables(jax.random.PRNGKey(0), config), config)\n"
+        "detector.detect(np.zeros((40, 48, 3), np.uint8), top_n=5)\n"
+        "print(' '.join(sorted(sys.modules)))\n"
+    )
+    loaded = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True,
+                            check=True).stdout.split()
+    heavy = [m for m in loaded if m.split(".")[0] in HEAVY]
+    ours = [m for m in loaded if m.startswith("usp_jax.") and _layer(m) not in ("core", "inference")]
+    assert heavy == [] and ours == []
+
+
+def _imports(path: pathlib.Path) -> set[str]:
+    found = set()
+    for node in ast.walk(ast.parse(path.read_text())):
+        if isinstance(node, ast.ImportFrom) and node.module and node.module.startswith("usp_jax"):
+            found |= {node.module} | {f"{node.module}.{a.name}" for a in node.names}
+        elif isinstance(node, ast.Import):
+            found |= {a.name for a in node.names if a.name.startswith("usp_jax")}
+    return {name for name in found if name.count(".") >= 1}
+
+
+def test_imports_go_one_way_cli_then_training_and_evaluation_then_inference_then_core():
+    wrong = []
+    for path in PACKAGE.rglob("*.py"):
+        module = ".".join(("usp_jax", *path.relative_to(PACKAGE).with_suffix("").parts))
+        if module.endswith("__init__") or module == "usp_jax.config":  # facades re-export
+            continue
+        mine = _layer(module)
+        for name in _imports(path):
+            theirs = _layer(name)
+            if LAYERS[theirs] > LAYERS[mine] or (LAYERS[theirs] == LAYERS[mine] == 2 and theirs != mine):
+                wrong.append(f"{module} imports {name}")
+    assert wrong == []
+
+
+def test_no_module_is_over_500_lines():
+    long = {str(p.relative_to(PACKAGE)): n for p in PACKAGE.rglob("*.py")
+            if (n := len(p.read_text().splitlines())) > 500}
+    assert long == {}

@@ -1,0 +1,95 @@
+"""Judging detectors: the HPatches protocol and its metrics, the OpenCV baselines, pairs made
+from any photos, the speed benchmark, figures, and the statistics that compare evaluations.
+
+``usp_jax.evaluation.evaluate`` and the other names below are the protocol's public API.
+"""
+
+from usp_jax.evaluation.metrics import (
+    CORRECT_DISTANCE,
+    HA_TOLERANCES,
+    corner_error,
+    homography_accuracy,
+    homography_matching,
+    image_corners,
+    matching_score,
+    project_points,
+    repeatability,
+    shared_top_k,
+    shared_view_mask,
+    top_k,
+)
+from usp_jax.evaluation.protocol import (
+    METRICS,
+    SPLITS,
+    EvalConfig,
+    Method,
+    PairResult,
+    Results,
+    as_method,
+    detect,
+    evaluate,
+    evaluate_pair,
+    format_table,
+    methods,
+    summarize,
+    to_json,
+)
+from usp_jax.evaluation.sequences import (
+    MIN_IMAGE_SIDE,
+    Pair,
+    PairFiles,
+    load_sequences,
+    read_image,
+    read_pair,
+    resize_pair,
+    scan_sequences,
+)
+from usp_jax.inference.features import Features
+from usp_jax.inference.matching import (
+    RANSAC_MAX_ITERS,
+    RANSAC_THRESHOLD,
+    Matching,
+    match_and_estimate,
+)
+
+__all__ = [
+    "CORRECT_DISTANCE",
+    "HA_TOLERANCES",
+    "METRICS",
+    "MIN_IMAGE_SIDE",
+    "RANSAC_MAX_ITERS",
+    "RANSAC_THRESHOLD",
+    "SPLITS",
+    "EvalConfig",
+    "Features",
+    "Matching",
+    "Method",
+    "Pair",
+    "PairFiles",
+    "PairResult",
+    "Results",
+    "as_method",
+    "corner_error",
+    "detect",
+    "evaluate",
+    "evaluate_pair",
+    "format_table",
+    "homography_accuracy",
+    "homography_matching",
+    "image_corners",
+    "load_sequences",
+    "match_and_estimate",
+    "matching_score",
+    "methods",
+    "project_points",
+    "read_image",
+    "read_pair",
+    "repeatability",
+    "resize_pair",
+    "scan_sequences",
+    "shared_top_k",
+    "shared_view_mask",
+    "summarize",
+    "to_json",
+    "top_k",
+]

@@ -1,0 +1,196 @@
+"""Speed of the detector in frames per second, as in the paper's Table 5 (section "Speed").
+
+The paper times UnsuperPoint on a GPU at 240x320 and 480x640, batch 1 and 10, *including* point
+selection and descriptor interpolation, and the classical detectors on a CPU. Here every number
+is end to end: uint8 photos on the host in, numpy keypoints/scores/descriptors out (for
+UnsuperPoint: host-to-device copy, network, top-N and interpolation in one compiled call, copy
+back), so the rows compare what a caller actually gets. Compilation is reported separately (the
+first call of each shape, timed alone); fps is the median of ``repeats`` timed calls after
+``warmup`` untimed ones. Fetching the results to numpy waits for the device, so no asynchronous
+work escapes the clock.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import itertools
+import os
+import platform
+import statistics
+import time
+from collections.abc import Callable, Mapping, Sequence
+
+import cv2
+import jax
+import numpy as np
+
+from usp_jax.evaluation.baselines import opencv_method
+from usp_jax.inference.detector import Detector
+
+DEFAULT_RESOLUTIONS = ((240, 320), (480, 640))
+OPENCV_DETECTORS = ("ORB", "SIFT", "AKAZE", "BRISK")
+UNSUPERPOINT = "UnsuperPoint"
+
+
+def protocol_top_n(height: int, width: int) -> int:
+    """The evaluation protocol's point count: 300 up to 240x320 pixels, 1000 above."""
+    return 300 if height * width <= 240 * 320 else 1000
+
+
+def benchmark_photos() -> list[np.ndarray]:
+    """Two real photos that ship with scikit-image (uint8 RGB, no download): what the benchmark
+    detects on by default."""
+    import skimage.data
+
+    return [skimage.data.astronaut(), skimage.data.coffee()]
+
+
+def time_calls(call: Callable[[], object], repeats: int, warmup: int = 1) -> list[float]:
+    """Seconds of ``repeats`` calls of ``call`` (after ``warmup`` untimed ones), each waited for
+    (``jax.block_until_ready``, so asynchronous dispatch is not mistaken for speed)."""
+    for _ in range(warmup):
+        jax.block_until_ready(call())
+    durations = []
+    for _ in range(repeats):
+        start = time.perf_counter()
+        jax.block_until_ready(call())
+        durations.append(time.perf_counter() - start)
+    return durations
+
+
+def _timed(call: Callable[[], object], repeats: int, warmup: int) -> tuple[float, float]:
+    """(seconds of the first call alone, median seconds of ``repeats`` calls after ``warmup``)."""
+    start = time.perf_counter()
+    jax.block_until_ready(call())
+    first = time.perf_counter() - start
+    return first, statistics.median(time_calls(call, repeats, warmup))
+
+
+def _row(method, height, width, batch, top_n, first, median, platform_name) -> dict:
+    return {
+        "method": method,
+        "height": height,
+        "width": width,
+        "batch": batch,
+        "top_n": top_n,
+        "platform": platform_name,
+        "fps": batch / median,
+        "median_s": median,
+        "first_call_s": first,
+    }
+
+
+def benchmark(
+    detector: Detector | Mapping[str, Detector],
+    resolutions: Sequence[tuple[int, int]] = DEFAULT_RESOLUTIONS,
+    batch_sizes: Sequence[int] = (1, 10),
+    top_n: int | None = None,
+    repeats: int = 10,
+    warmup: int = 2,
+    include_opencv: bool = True,
+    images: Sequence[np.ndarray] | None = None,
+) -> dict:
+    """Frames per second of ``detector`` (and of OpenCV's ORB, SIFT, AKAZE, BRISK at batch 1)
+    on the same photos resized to each (height, width) of ``resolutions``. A mapping of names
+    to detectors times each of them (rows "UnsuperPoint NAME"), e.g. both shipped networks.
+
+    ``top_n`` points are kept per image (None: :func:`protocol_top_n` of the resolution);
+    ``images`` are uint8 RGB photos of any size (default :func:`benchmark_photos`), cycled to fill
+    a batch. Returns a JSON-serialisable dict: the device, platform and library versions, the
+    settings, and ``rows`` with, per method, resolution and batch size, ``fps``, ``median_s``
+    (one call) and ``first_call_s`` (for UnsuperPoint: compilation plus one run).
+    """
+    if repeats < 1 or warmup < 0 or not batch_sizes or min(batch_sizes) < 1:
+        raise ValueError(
+            f"need repeats >= 1, warmup >= 0 and positive batch sizes, got repeats={repeats},"
+            f" warmup={warmup}, batch_sizes={tuple(batch_sizes)}"
+        )
+    photos = benchmark_photos() if images is None else list(images)
+    if not photos:
+        raise ValueError("benchmark needs at least one image")
+    detectors = (
+        {UNSUPERPOINT: detector} if isinstance(detector, Detector)
+        else {f"{UNSUPERPOINT} {name}": d for name, d in detector.items()}
+    )
+    device = jax.devices()[0]
+    rows = []
+    for height, width in resolutions:
+        n = protocol_top_n(height, width) if top_n is None else top_n
+        resized = [
+            cv2.resize(photo, (width, height), interpolation=cv2.INTER_AREA) for photo in photos
+        ]
+        frames = np.stack([resized[i % len(resized)] for i in range(max(batch_sizes))])
+        for batch in batch_sizes:
+            stack = frames[:batch]
+            for label, network in detectors.items():
+                first, median = _timed(
+                    lambda: network.detect_batch(stack, top_n=n), repeats, warmup
+                )
+                rows.append(_row(label, height, width, batch, n, first, median, device.platform))
+        if include_opencv:
+            for name in OPENCV_DETECTORS:
+                method = opencv_method(name, n)
+                # One photo after another, as a video stream would feed them.
+                stream = itertools.cycle(resized)
+                first, median = _timed(lambda: method.detect(next(stream)), repeats, warmup)
+                rows.append(_row(name, height, width, 1, n, first, median, "cpu"))
+    return {
+        "device": device.device_kind,
+        "platform": device.platform,
+        "jax_version": jax.__version__,
+        "opencv_version": cv2.__version__,
+        "host": f"{platform.machine()}, {os.cpu_count()} cores",
+        "models": {label: dataclasses.asdict(d.model_config) for label, d in detectors.items()},
+        "nms_radius": next(iter(detectors.values())).nms_radius,
+        "upsample": next(iter(detectors.values())).upsample,
+        "repeats": repeats,
+        "warmup": warmup,
+        "rows": rows,
+    }
+
+
+def format_benchmark(result: dict) -> str:
+    """The paper's Table 5 layout: one row per detector (UnsuperPoint per batch size), one fps
+    column per resolution; then UnsuperPoint's first-call (compile) times."""
+    resolutions = list(dict.fromkeys((r["height"], r["width"]) for r in result["rows"]))
+    upsample = result.get("upsample", 1)  # files written before the option have none
+    labels, cells, compile_s = [], {}, {}
+    for row in result["rows"]:
+        label = row["method"]
+        if row["method"].startswith(UNSUPERPOINT):
+            label = f"{row['method']}, b{row['batch']}"
+            compile_s[label, row["height"], row["width"]] = row["first_call_s"]
+        if label not in labels:
+            labels.append(label)
+        cells[label, row["height"], row["width"]] = row["fps"]
+    # The classical detectors first, as in the paper.
+    labels.sort(key=lambda label: label.startswith(UNSUPERPOINT))
+    width = max(len("Detectors"), *map(len, labels))
+    columns = [f"FPS @ {h}x{w}" for h, w in resolutions]
+    lines = [
+        f"{UNSUPERPOINT} on {result['device']} ({result['platform']}), JAX {result['jax_version']};"
+        f" OpenCV {result['opencv_version']} on the host CPU ({result['host']})",
+        f"median of {result['repeats']} calls after {result['warmup']} warm-up calls,"
+        " end to end (uint8 images in, numpy points out)"
+        + (f"; {UNSUPERPOINT} on {upsample}x enlarged images" if upsample > 1 else ""),
+        "",
+        f"{'Detectors':<{width}} | " + " | ".join(f"{c:>15}" for c in columns),
+        "-" * (width + 1) + "".join("+" + "-" * 17 for _ in columns),
+    ]
+
+    def cell(table, label, h, w, fmt):
+        value = table.get((label, h, w))
+        return f"{'-' if value is None else format(value, fmt):>15}"
+
+    for label in labels:
+        lines.append(
+            f"{label:<{width}} | "
+            + " | ".join(cell(cells, label, h, w, ".1f") for h, w in resolutions)
+        )
+    lines += ["", f"{'First call (s)':<{width}} | " + " | ".join(f"{c[6:]:>15}" for c in columns)]
+    for label in dict.fromkeys(key[0] for key in compile_s):
+        lines.append(
+            f"{label:<{width}} | "
+            + " | ".join(cell(compile_s, label, h, w, ".2f") for h, w in resolutions)
+        )
+    return "\n".join(lines)

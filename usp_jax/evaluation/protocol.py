@@ -1,0 +1,290 @@
+"""The HPatches evaluation protocol over a data set: every method on every pair (1, k) through the
+same code path (read, resize, detect, the same radius NMS, then the metrics of
+:mod:`usp_jax.evaluation.metrics`), aggregated as the paper's tables.
+
+A :class:`Method` is any detector: a classical one from :mod:`usp_jax.evaluation.baselines` or a
+``Detector`` wrapped by :func:`as_method`.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from collections.abc import Callable, Sequence
+from pathlib import Path
+from typing import NamedTuple
+
+import cv2
+import numpy as np
+from tqdm import tqdm
+
+from usp_jax.evaluation.metrics import (
+    CORRECT_DISTANCE,
+    HA_TOLERANCES,
+    homography_accuracy,
+    matching_score,
+    repeatability,
+    shared_top_k,
+    take,
+)
+from usp_jax.evaluation.sequences import Pair, read_pair, resize_pair, scan_sequences
+from usp_jax.inference.detector import Detector
+from usp_jax.inference.features import Features
+from usp_jax.inference.nms import radius_nms_host
+
+# Section order of the tables: every pair, then HPatches' illumination and viewpoint splits.
+SPLITS = ("i", "v", "other")
+METRICS = ("rs", "le", "ha1", "ha3", "ha5", "ms")
+_HEADERS = ("RS", "LE", "HA e=1", "HA e=3", "HA e=5", "MS")
+
+
+@dataclasses.dataclass(frozen=True)
+class Method:
+    """A detector under evaluation: ``detect(uint8 [H, W, 3] RGB) -> Features``.
+
+    ``norm`` is the descriptor distance, ``cv2.NORM_L2`` for float descriptors or
+    ``cv2.NORM_HAMMING`` for binary ones (ORB, AKAZE, BRISK).
+    """
+
+    name: str
+    detect: Callable[[np.ndarray], Features]
+    norm: int = cv2.NORM_L2
+
+
+def as_method(detector: Detector, name: str = "UnsuperPoint") -> Method:
+    """The detector as an evaluation Method (L2 descriptors) returning ALL its candidate points:
+    the evaluation applies NMS and top-k to every method alike, so ``detector``'s ``top_n``,
+    ``nms_radius`` and ``border`` are not used (its ``upsample`` is)."""
+    every_point = Detector(detector.variables, detector.model_config, upsample=detector.upsample)
+    return Method(name, every_point.detect, cv2.NORM_L2)
+
+
+def methods(detector: Detector | None, baselines: Sequence[str], top_k: int) -> list[Method]:
+    """The methods of one evaluation: ``detector`` (if any, :func:`as_method`) and the named OpenCV
+    ``baselines``, in that order, for a protocol keeping ``top_k`` points.
+
+    The evaluation applies NMS and the shared-view filter before its own top-k, to
+    UnsuperPoint's full candidate set; a baseline cut at exactly top-k before them would be left
+    with fewer points than the model on every viewpoint pair, so each keeps 4 ``top_k``.
+    """
+    from usp_jax.evaluation.baselines import opencv_method
+
+    found = [as_method(detector)] if detector is not None else []
+    return found + [opencv_method(name, 4 * top_k) for name in baselines]
+
+
+@dataclasses.dataclass(frozen=True)
+class EvalConfig:
+    """Settings of one evaluation run (the paper's two: 240x320 / 300 and 480x640 / 1000).
+
+    ``height``/``width`` None keeps every image at its own size. ``nms`` is the suppression
+    radius in pixels (0 = none), applied to every method's points before any top-k.
+    """
+
+    height: int | None = 240
+    width: int | None = 320
+    top_k: int = 300
+    nms: float = 0.0
+
+
+class PairResult(NamedTuple):
+    """Metrics of one method on one pair. ``corner_error`` is inf and ``le`` NaN when undefined;
+    ``num_points`` is the mean count over both images of the points RS, LE and HA use (after
+    NMS, the shared-view filter and top-k): below top-k, the method ran short of points."""
+
+    scene: str
+    split: str
+    k: int
+    method: str
+    rs: float
+    le: float
+    corner_error: float
+    ha1: float
+    ha3: float
+    ha5: float
+    ms: float
+    num_points: float
+
+
+@dataclasses.dataclass(frozen=True)
+class Results:
+    """Per-pair rows of :func:`evaluate`, in data-set order, methods in the order given."""
+
+    config: EvalConfig
+    methods: tuple[str, ...]
+    rows: tuple[PairResult, ...]
+
+
+def _checked(features: Features, method: Method, nms: float) -> Features:
+    """Validate a detector's output and apply the uniform radius NMS."""
+    keypoints = np.asarray(features.keypoints, dtype=np.float32)
+    scores = np.asarray(features.scores, dtype=np.float32).reshape(-1)
+    descriptors = np.asarray(features.descriptors)
+    n = len(scores)
+    if keypoints.shape != (n, 2) or descriptors.ndim != 2 or len(descriptors) != n:
+        raise ValueError(
+            f"method {method.name}: expected keypoints [N, 2], scores [N], descriptors [N, D], got "
+            f"{keypoints.shape}, {scores.shape}, {descriptors.shape}"
+        )
+    if method.norm == cv2.NORM_HAMMING and descriptors.dtype != np.uint8:
+        raise ValueError(
+            f"method {method.name}: Hamming norm needs uint8 descriptors, got {descriptors.dtype}"
+        )
+    checked = Features(keypoints, scores, descriptors)
+    return take(checked, radius_nms_host(keypoints, scores, nms)) if nms > 0 else checked
+
+
+def detect(method: Method, image: np.ndarray, nms: float = 0.0) -> Features:
+    """``method.detect(image)`` with its output validated and the protocol's radius NMS applied:
+    the points every metric starts from."""
+    return _checked(method.detect(image), method, nms)
+
+
+def evaluate_pair(method: Method, pair: Pair, config: EvalConfig) -> PairResult:
+    """Run one method on one (already resized) pair and compute every metric."""
+    features1 = detect(method, pair.image1, config.nms)
+    features2 = detect(method, pair.image2, config.nms)
+    shape1, shape2 = pair.image1.shape[:2], pair.image2.shape[:2]
+    args = (features1, features2, pair.homography, shape1, shape2, config.top_k)
+    rs, le = repeatability(*args)
+    error = homography_accuracy(*args, norm=method.norm)
+    ha1, ha3, ha5 = (float(error <= eps) for eps in HA_TOLERANCES)
+    kept1, kept2 = shared_top_k(*args)
+    num_points = (len(kept1.scores) + len(kept2.scores)) / 2
+    return PairResult(
+        scene=pair.scene,
+        split=pair.split,
+        k=pair.index,
+        method=method.name,
+        rs=rs,
+        le=le,
+        corner_error=error,
+        ha1=ha1,
+        ha3=ha3,
+        ha5=ha5,
+        ms=matching_score(*args, norm=method.norm),
+        num_points=num_points,
+    )
+
+
+def evaluate(
+    methods: Sequence[Method],
+    root: str | Path,
+    *,
+    height: int | None = 240,
+    width: int | None = 320,
+    top_k: int = 300,
+    nms: float = 0,
+    progress: bool = True,
+) -> Results:
+    """Evaluate every method on every pair (1, k) of an HPatches/Oxford folder, all through the
+    same code path: read, :func:`resize_pair`, detect, radius NMS (if ``nms > 0``), then
+    :func:`repeatability`, :func:`homography_accuracy` and :func:`matching_score` with ``top_k``.
+
+    Pass ``height=width=None`` to keep the native sizes. Aggregate with :func:`summarize`,
+    print with :func:`format_table`, save with :func:`to_json`.
+    """
+    names = tuple(method.name for method in methods)
+    if not names:
+        raise ValueError("evaluate needs at least one method")
+    if len(set(names)) != len(names):
+        raise ValueError(f"method names must be unique, got {names}")
+    if (height is None) != (width is None):
+        raise ValueError(
+            f"give both height and width or neither, got height={height}, width={width}"
+        )
+    config = EvalConfig(height, width, top_k, float(nms))
+    files = scan_sequences(root)
+    rows = []
+    for pair in tqdm(
+        map(read_pair, files), total=len(files), desc="evaluate", unit="pair", disable=not progress
+    ):
+        if height is not None:
+            image1, image2, homography = resize_pair(
+                pair.image1, pair.image2, pair.homography, height, width
+            )
+            pair = pair._replace(image1=image1, image2=image2, homography=homography)
+        rows.extend(evaluate_pair(method, pair, config) for method in methods)
+    return Results(config, names, tuple(rows))
+
+
+def _mean(values: list[float]) -> float:
+    """Mean skipping NaN (undefined LE); NaN when no value is defined."""
+    values = np.asarray(values, dtype=np.float64)
+    return float(np.nanmean(values)) if np.any(np.isfinite(values)) else math.nan
+
+
+def summarize(results: Results) -> dict[str, dict[str, dict[str, float]]]:
+    """Means over pairs: ``{method: {section: {metric: value, "pairs": count}}}``.
+
+    Sections are "all" and each split present ('i', 'v', 'other'). Metrics: rs, le (NaN pairs
+    skipped), ha1, ha3, ha5 (fraction of pairs with corner error <= eps), ms, num_points.
+    """
+    summary = {}
+    for name in results.methods:
+        sections = {"all": [row for row in results.rows if row.method == name]}
+        for row in sections["all"]:
+            sections.setdefault(row.split, []).append(row)
+        summary[name] = {
+            section: {
+                "pairs": len(rows),
+                **{m: _mean([getattr(r, m) for r in rows]) for m in (*METRICS, "num_points")},
+            }
+            for section, rows in sections.items()
+        }
+    return summary
+
+
+def format_table(results: Results) -> str:
+    """The paper's table layout: one row per method, columns RS, LE, HA at eps 1/3/5 and MS,
+    one section for all pairs and one per split."""
+    config = results.config
+    size = "native size" if config.height is None else f"{config.height}x{config.width}"
+    summary = summarize(results)
+    width = max([len("method"), *map(len, results.methods)])
+    header = f"  {'method':<{width}}" + "".join(f"{h:>8}" for h in _HEADERS)
+    titles = {
+        "all": "all pairs",
+        "i": "i: illumination",
+        "v": "v: viewpoint",
+        "other": "other scenes",
+    }
+    lines = [f"{size}, top {config.top_k} points, NMS = {config.nms:g}"]
+    for section in ("all", *SPLITS):
+        if section not in summary[results.methods[0]]:
+            continue
+        pairs = summary[results.methods[0]][section]["pairs"]
+        lines += ["", f"{titles[section]} ({pairs} pairs)", header]
+        for name in results.methods:
+            values = summary[name][section]
+            lines.append(f"  {name:<{width}}" + "".join(f"{values[m]:>8.3f}" for m in METRICS))
+    return "\n".join(lines)
+
+
+def _json_number(value: float) -> float | None:
+    # JSON has no NaN or Infinity: undefined LE and failed homographies become null.
+    return value if math.isfinite(value) else None
+
+
+def to_json(results: Results) -> dict:
+    """A JSON-ready dict: settings, per-method aggregates (:func:`summarize`) and per-pair rows.
+    Non-finite numbers (undefined LE, the inf corner error of a failed estimate) become null."""
+    summary = summarize(results)
+    return {
+        "config": dataclasses.asdict(results.config)
+        | {"correct_distance": CORRECT_DISTANCE, "ha_tolerances": list(HA_TOLERANCES)},
+        "summary": {
+            name: {
+                section: {key: _json_number(value) for key, value in values.items()}
+                for section, values in sections.items()
+            }
+            for name, sections in summary.items()
+        },
+        "pairs": [
+            {
+                key: _json_number(value) if isinstance(value, float) else value
+                for key, value in row._asdict().items()
+            }
+            for row in results.rows
+        ],
+    }

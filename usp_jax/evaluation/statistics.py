@@ -1,0 +1,87 @@
+"""How sure a change is: relative changes between evaluations and their 95% intervals from a
+paired bootstrap over the evaluation pairs (how much of a change the choice of pairs alone
+could explain). Rows are ``usp_jax.evaluation.to_json``'s "pairs".
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from usp_jax.evaluation.protocol import METRICS
+
+#: The learned model's method name in evaluation rows.
+MODEL = "UnsuperPoint"
+
+
+def relative_changes(summary: dict, base: str = "C0") -> dict[str, dict[str, float]]:
+    """Per configuration and metric, the change relative to ``base`` in percent, positive =
+    better; NaN where the base value is 0 (a metric none of the pairs scored on)."""
+    reference = summary[base]
+    changes = {}
+    for name, values in summary.items():
+        changes[name] = {}
+        for metric in METRICS:
+            with np.errstate(divide="ignore", invalid="ignore"):
+                change = 100.0 * np.divide(
+                    values[metric] - reference[metric], np.abs(reference[metric])
+                )
+            change = np.where(np.isfinite(change), change, np.nan)
+            change = -change if metric == "le" else change
+            changes[name][metric] = float(change) if change.ndim == 0 else change
+    return changes
+
+
+def per_pair(rows: list[dict]) -> dict[str, dict[str, np.ndarray]]:
+    """``{config: {metric: [P]}}`` from evaluation rows (``evaluation.to_json``'s "pairs"), every
+    configuration's pairs in the same order; null (undefined LE) becomes NaN."""
+    table = {}
+    for row in rows:
+        values = table.setdefault(row["method"], {m: [] for m in METRICS})
+        for metric in METRICS:
+            values[metric].append(math.nan if row[metric] is None else row[metric])
+    return {
+        name: {m: np.asarray(v, np.float64) for m, v in values.items()}
+        for name, values in table.items()
+    }
+
+
+def bootstrap_intervals(
+    pairs: dict[str, dict[str, np.ndarray]], rounds: int = 2000, seed: int = 0, base: str = "C0"
+) -> dict[str, dict[str, tuple[float, float]]]:
+    """95% percentile intervals of :func:`relative_changes`, resampling the evaluation pairs with
+    replacement, the same draw for every configuration (a paired bootstrap: each configuration met
+    the same pairs). LE's mean skips its undefined (NaN) pairs, as ``evaluation.summarize`` does."""
+    count = len(pairs[base][METRICS[0]])
+    draws = np.random.default_rng(seed).integers(0, count, size=(rounds, count))
+    means = {
+        name: {m: np.nanmean(values[m][draws], axis=1) for m in METRICS}
+        for name, values in pairs.items()
+    }
+    intervals = {}
+    for name in pairs:
+        changes = relative_changes({base: means[base], name: means[name]}, base)[name]
+        intervals[name] = {
+            m: tuple(float(q) for q in np.nanpercentile(changes[m], [2.5, 97.5])) for m in METRICS
+        }
+    return intervals
+
+
+def paired_change(base_rows: list[dict], new_rows: list[dict], rounds: int = 2000) -> dict:
+    """``{metric: (change %, (low, high))}`` of the model in ``new_rows`` against ``base_rows``:
+    positive = better (LE's sign flipped), interval from a paired bootstrap over the pairs."""
+
+    def model_rows(rows, name):
+        kept = sorted((r for r in rows if r["method"] == MODEL), key=lambda r: (r["scene"], r["k"]))
+        return [{**r, "method": name} for r in kept]
+
+    base, new = model_rows(base_rows, "base"), model_rows(new_rows, "new")
+    if [(r["scene"], r["k"]) for r in base] != [(r["scene"], r["k"]) for r in new]:
+        raise ValueError("the two evaluations did not score the same pairs")
+    pairs = per_pair(base + new)
+    means = {name: {m: float(np.nanmean(v)) for m, v in metrics.items()}
+             for name, metrics in pairs.items()}
+    changes = relative_changes(means, base="base")["new"]
+    intervals = bootstrap_intervals(pairs, rounds=rounds, base="base")["new"]
+    return {m: (changes[m], intervals[m]) for m in METRICS}

@@ -1,0 +1,67 @@
+"""Matching two images' features: mutual nearest neighbours in descriptor space and a RANSAC
+homography, the paper's homography estimation procedure (what ``usp-jax match`` runs and what
+the evaluation's homography accuracy is measured on).
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import cv2
+import numpy as np
+
+from usp_jax.inference.features import Features
+
+#: RANSAC settings of the protocol for ``cv2.findHomography``.
+RANSAC_THRESHOLD = 3.0
+RANSAC_MAX_ITERS = 5000
+
+
+class Matching(NamedTuple):
+    """Result of the homography estimation procedure.
+
+    matches: int ``[K, 2]`` indices (into features 1, into features 2) of mutual nearest
+    neighbours in descriptor space. inliers: bool ``[K]``, RANSAC's inlier mask.
+    homography: float64 [3, 3] estimate mapping image 1 to image 2, or None when it failed.
+    """
+
+    matches: np.ndarray
+    inliers: np.ndarray
+    homography: np.ndarray | None
+
+
+def nearest_neighbours(
+    descriptors1: np.ndarray, descriptors2: np.ndarray, norm: int, cross_check: bool
+) -> np.ndarray:
+    """Brute-force nearest neighbours, int ``[K, 2]`` (index in 1, index in 2)."""
+    if len(descriptors1) == 0 or len(descriptors2) == 0:
+        return np.zeros((0, 2), dtype=np.int64)
+    dtype = np.uint8 if norm == cv2.NORM_HAMMING else np.float32
+    matcher = cv2.BFMatcher(norm, crossCheck=cross_check)
+    matches = matcher.match(
+        np.ascontiguousarray(descriptors1, dtype), np.ascontiguousarray(descriptors2, dtype)
+    )
+    return np.array([(m.queryIdx, m.trainIdx) for m in matches], dtype=np.int64).reshape(-1, 2)
+
+
+def match_and_estimate(
+    features1: Features, features2: Features, norm: int = cv2.NORM_L2
+) -> Matching:
+    """The paper's homography estimation procedure: mutual nearest neighbours in descriptor
+    space (``cv2.BFMatcher(norm, crossCheck=True)``), then
+    ``cv2.findHomography(p1, p2, cv2.RANSAC, 3, maxIters=5000)``.
+
+    Fewer than 4 matches, or no homography from OpenCV, gives ``homography=None`` and no inliers.
+    """
+    matches = nearest_neighbours(features1.descriptors, features2.descriptors, norm, cross_check=True)
+    no_inliers = np.zeros(len(matches), dtype=bool)
+    if len(matches) < 4:
+        return Matching(matches, no_inliers, None)
+    points1 = np.asarray(features1.keypoints, np.float64)[matches[:, 0]]
+    points2 = np.asarray(features2.keypoints, np.float64)[matches[:, 1]]
+    estimate, mask = cv2.findHomography(
+        points1, points2, cv2.RANSAC, RANSAC_THRESHOLD, maxIters=RANSAC_MAX_ITERS
+    )
+    if estimate is None or estimate.shape != (3, 3):
+        return Matching(matches, no_inliers, None)
+    return Matching(matches, mask.ravel().astype(bool), estimate)

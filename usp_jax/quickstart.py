@@ -1,0 +1,67 @@
+"""The quick-start job (``usp-jax demo``, ``usp_jax.demo()``): the shipped weights evaluated
+against ORB and SIFT on HPatches-layout pairs made from bundled photos the model never saw,
+offline, in under a minute on a laptop CPU, with a keypoint and a matches PNG.
+
+It sits above training and evaluation: without shipped weights it trains briefly instead.
+"""
+
+from __future__ import annotations
+
+import pathlib
+import sys
+import tempfile
+import time
+
+from usp_jax.evaluation import plotting, protocol
+from usp_jax.evaluation.pairs import make_pairs
+from usp_jax.inference import weights
+from usp_jax.inference.detector import Detector
+from usp_jax.inference.images import sample_photos
+
+#: Package photos held out of the shipped weights' training corpus (experiments/build_corpus.py).
+DEMO_PHOTOS = ("coffee.png", "chelsea.png", "rocket.jpg")
+#: Where the demo writes when no folder is given.
+DEFAULT_OUT = pathlib.Path(tempfile.gettempdir()) / "usp-jax-demo"
+
+
+def demo(out: str | pathlib.Path = DEFAULT_OUT, weights_name: str | None = None) -> protocol.Results:
+    """Runs the demo into ``out`` (pairs, PNGs; ``out/train`` if it has to train) and prints the
+    evaluation table; returns its results. ``weights_name``: shipped weights by name (None: the
+    default); a named one that is missing is an error, not a reason to train."""
+    start = time.perf_counter()
+    out = pathlib.Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    try:
+        detector = Detector.pretrained(weights_name)
+        name = weights_name or weights.DEFAULT_PRETRAINED
+        print(f"model: the {name!r} weights shipped with usp-jax")
+        about = "photos the shipped model never saw"
+    except FileNotFoundError:
+        if weights_name:
+            raise
+        detector = _short_training(out / "train")
+        about = "photos the short training saw too (no shipped weights)"
+    photos = {path.name: path for distribution, path in sample_photos()
+              if distribution == "scikit-image"}
+    print("[2/3] building HPatches-layout pairs from the bundled photos", file=sys.stderr)
+    make_pairs([photos[name] for name in DEMO_PHOTOS], out / "pairs", seed=0, size=(480, 640),
+               progress=True)
+    print("[3/3] evaluating against ORB and SIFT", file=sys.stderr)
+    methods = protocol.methods(detector, ("orb", "sift"), top_k=300)
+    results = protocol.evaluate(methods, out / "pairs", height=240, width=320, top_k=300, nms=0,
+                                progress=True)
+    print(f"\n240x320, top 300 points, pairs made from {about}")
+    print(protocol.format_table(results))
+    matches = plotting.plot_example_pair(methods[0], out / "pairs", out, (240, 320), 300, 0)
+    print(f"wrote {matches}")
+    print(f"demo finished in {time.perf_counter() - start:.0f} s; outputs in {out}")
+    return results
+
+
+def _short_training(workdir: pathlib.Path) -> Detector:
+    from usp_jax.training import config as config_lib
+    from usp_jax.training.train import fit
+
+    print("[1/3] no shipped weights: a short training on the bundled photos", file=sys.stderr)
+    fit(config_lib.override(config_lib.cpu(), ["num_steps=150", "checkpoint_every=150"]), workdir)
+    return Detector.from_checkpoint(workdir)

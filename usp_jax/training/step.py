@@ -1,0 +1,282 @@
+"""One training step (paper section 3): siamese branches, the loss, Adam, jitted data-parallel.
+
+Branch A is the (photometrically augmented) image, branch B the same image warped by a random
+homography T and augmented independently (``make_branches``; with ``data.context_window``, B is
+rendered from a larger window around A so that T may rotate by any angle,
+``make_window_branches``). Both go through one network with shared parameters;
+``losses.total_loss`` compares them. The host only decodes and crops: homographies, warps and
+augmentation are sampled on the device inside the jitted step, from a key derived from the step
+number, so a resumed run sees exactly the randomness an uninterrupted one would.
+"""
+
+from __future__ import annotations
+
+from typing import Any, Callable
+
+import flax
+import jax
+import jax.numpy as jnp
+import optax
+from jax.sharding import NamedSharding
+from jax.sharding import PartitionSpec as P
+
+from usp_jax.core import augment, geometry, losses
+from usp_jax.core.cpu_kernels import compiler_options
+from usp_jax.core.model import Predictions, UnsuperPoint, init_variables
+from usp_jax.inference.weights import load_weights
+from usp_jax.training import config as config_lib
+
+
+@flax.struct.dataclass
+class TrainState:
+    """Everything that changes during training, as one pytree (checkpointed whole)."""
+
+    step: jax.Array  # int32 []
+    params: Any
+    batch_stats: Any
+    opt_state: Any
+    key: jax.Array  # uint32 [2], base key; step s uses fold_in(key, s)
+
+
+def learning_rate(cfg: config_lib.OptimConfig) -> optax.Schedule:
+    """Step -> rate: linear warm-up from 0 (if any), then constant or cosine decay to 0."""
+    peak = optax.constant_schedule(cfg.learning_rate)
+    if cfg.decay_steps:
+        peak = optax.cosine_decay_schedule(cfg.learning_rate, cfg.decay_steps)
+    if not cfg.warmup_steps:
+        return peak
+    warmup = optax.linear_schedule(0.0, cfg.learning_rate, cfg.warmup_steps)
+    return optax.join_schedules([warmup, peak], [cfg.warmup_steps])
+
+
+def make_optimizer(cfg: config_lib.OptimConfig) -> optax.GradientTransformation:
+    adam = optax.adam(learning_rate(cfg))
+    return optax.chain(optax.clip_by_global_norm(cfg.clip_norm), adam) if cfg.clip_norm else adam
+
+
+def check_config(config: config_lib.Config) -> None:
+    """Raises ValueError for a field of the wrong type or out of range (``config.validate``) and
+    for settings that only make sense together (each section validates itself;
+    ``config.override`` applies one key at a time, so the sections cannot check each other)."""
+    config_lib.validate(config)
+    if config.homography.rotation_range is not None and not config.data.context_window:
+        raise ValueError(
+            f"homography.rotation_range={config.homography.rotation_range} needs "
+            "data.context_window=True: inside the crop a patch rotated that far would almost never "
+            "fit (see experiments/rotation.py)"
+        )
+
+
+def create_state(config: config_lib.Config) -> TrainState:
+    key = jax.random.PRNGKey(config.seed)
+    init_key, train_key = jax.random.split(key)
+    variables = init_variables(init_key, config.model)
+    if config.init_weights:
+        model_config, loaded = load_weights(config.init_weights)
+        # Compare weight shapes, not configs: dtype, BatchNorm momentum or the heads' init scale
+        # may differ between the exporting and the continuing run (export on a CPU writes
+        # float32, a TPU run computes in bfloat16) without changing a single weight.
+        if jax.tree.map(jnp.shape, loaded) != jax.tree.map(jnp.shape, variables):
+            raise ValueError(
+                f"{config.init_weights} holds a {model_config} network, whose weights do not fit "
+                f"the run's {config.model}"
+            )
+        variables = loaded
+    optimizer = make_optimizer(config.optim)
+    return TrainState(
+        step=jnp.zeros((), jnp.int32),
+        params=variables["params"],
+        batch_stats=variables["batch_stats"],
+        opt_state=optimizer.init(variables["params"]),
+        key=train_key,
+    )
+
+
+def make_branches(
+    key: jax.Array,
+    images: jax.Array,
+    homography_cfg: geometry.HomographyConfig,
+    photometric_cfg: augment.PhotometricConfig,
+) -> tuple[jax.Array, jax.Array, jax.Array]:
+    """Section 3: branch A = aug(image), branch B = aug(T(image)) with independent augmentations.
+
+    images: [B, H, W, 3] float in [0, 1]. Returns (images_a, images_b, T [B, 3, 3]).
+    """
+    batch, height, width, _ = images.shape
+    k_h, k_a, k_b = jax.random.split(key, 3)
+    homographies = jax.vmap(lambda k: geometry.sample_homography(k, height, width, homography_cfg))(
+        jax.random.split(k_h, batch)
+    )
+    warped, _ = jax.vmap(lambda im, h: geometry.warp_image(im, h, (height, width)))(
+        images, homographies
+    )
+    augment_all = jax.vmap(lambda k, im: augment.photometric_augment(k, im, photometric_cfg))
+    images_a = augment_all(jax.random.split(k_a, batch), images)
+    images_b = augment_all(jax.random.split(k_b, batch), warped)
+    return images_a, images_b, homographies
+
+
+# Bilinear weights of a pixel whose neighbours all show the photo sum to 1 up to rounding.
+_VALID_ALPHA = 1.0 - 1e-3
+
+
+def make_window_branches(
+    key: jax.Array,
+    windows: jax.Array,
+    height: int,
+    width: int,
+    homography_cfg: geometry.HomographyConfig,
+    photometric_cfg: augment.PhotometricConfig,
+) -> tuple[jax.Array, jax.Array, jax.Array, jax.Array]:
+    """Section 3 with B rendered from a context window around A, so that T may rotate by any angle.
+
+    Branch A = aug(the [height, width] crop at the centre of each window); branch B = aug(T(the
+    whole window)), with T from ``geometry.sample_window_homography``, so B shows real photo content
+    at any rotation. B's pixels whose source lies outside the window or on its padding are 0 and
+    False in ``valid_b``; their points have no partner inside A, which the losses already mask.
+
+    Args:
+      key: PRNG key.
+      windows: [B, S_h, S_w, 4] float in [0, 1], RGB and validity (1 = photo, 0 = padding), as
+        ``data.random_context_crop`` delivers them (divided by 255); the centre crops lie inside
+        the photo.
+      height, width: the crop's (and B's) size in pixels (static).
+      homography_cfg, photometric_cfg: static.
+    Returns:
+      images_a [B, height, width, 3], images_b [B, height, width, 3], T [B, 3, 3] mapping A's pixels
+      to B's (as ``make_branches``), and valid_b bool [B, height, width].
+    """
+    batch, window_height, window_width, _ = windows.shape
+    window = (window_height, window_width)
+    origin_x, origin_y = geometry.window_origin(height, width, window)
+    k_h, k_a, k_b = jax.random.split(key, 3)
+    homographies = jax.vmap(
+        lambda k: geometry.sample_window_homography(k, height, width, window, homography_cfg)
+    )(jax.random.split(k_h, batch))
+    # Window pixels are A's shifted by the origin: undo the shift, then apply T.
+    from_window = geometry.compose_homographies(
+        homographies, geometry.translation(-origin_x, -origin_y)
+    )
+    warped, inside = jax.vmap(lambda im, h: geometry.warp_image(im, h, (height, width)))(
+        windows, from_window
+    )
+    valid_b = inside & (warped[..., 3] >= _VALID_ALPHA)
+    crops = windows[:, origin_y : origin_y + height, origin_x : origin_x + width, :3]
+    augment_all = jax.vmap(lambda k, im: augment.photometric_augment(k, im, photometric_cfg))
+    images_a = augment_all(jax.random.split(k_a, batch), crops)
+    # Zeroed after augmenting too: brightness, contrast and noise would otherwise paint the
+    # missing pixels grey or speckled, i.e. texture the network could learn to find points on.
+    images_b = augment_all(jax.random.split(k_b, batch), warped[..., :3]) * valid_b[..., None]
+    return images_a, images_b, homographies, valid_b
+
+
+def score_position_r2(scores: jax.Array, keypoints: jax.Array) -> jax.Array:
+    """How much of the score variation is a linear ramp across the image, mean over the batch.
+
+    scores [B, M], keypoints [B, M, 2] -> scalar in [0, 1]: per image corr(s, x)^2 + corr(s, y)^2
+    (x and y of the cell grid are uncorrelated, so this is the R^2 of a plane fit). Near 1, the
+    network scores where a point is rather than what it looks like: it has read its position off
+    the zero padding (see losses.pair_loss).
+    """
+
+    def r2(values, coordinate):
+        a = values - jnp.mean(values, axis=-1, keepdims=True)
+        b = coordinate - jnp.mean(coordinate, axis=-1, keepdims=True)
+        cov = jnp.sum(a * b, axis=-1)
+        return cov**2 / jnp.maximum(jnp.sum(a * a, axis=-1) * jnp.sum(b * b, axis=-1), 1e-20)
+
+    return jnp.mean(r2(scores, keypoints[..., 0]) + r2(scores, keypoints[..., 1]))
+
+
+def _prediction_stats(pred: Predictions) -> dict:
+    return {
+        "score_mean": jnp.mean(pred.scores),
+        "score_std": jnp.std(pred.scores),
+        "score_position_r2": score_position_r2(pred.scores, pred.keypoints),
+        "relative_std": jnp.std(pred.relative),
+        # Share of points in the outer 10% of their cell: the border pile-up peers reported.
+        "relative_at_edge": jnp.mean((pred.relative < 0.05) | (pred.relative > 0.95)),
+    }
+
+
+def train_step(
+    state: TrainState, images: jax.Array, config: config_lib.Config
+) -> tuple[TrainState, dict]:
+    """One optimisation step on a uint8 batch [B, H, W, 3] (with ``config.data.context_window``,
+    context windows [B, S, S, 4], see ``make_window_branches``); a pure function of its inputs.
+
+    Returns the new state and a metrics dict (every loss term, K, mean d_k, score and position
+    statistics, ``finite``). A step whose loss, gradients or new parameters are not finite leaves
+    the state unchanged and reports ``finite = 0`` so the loop can stop on the last good state.
+    """
+    model = UnsuperPoint(config.model)
+    optimizer = make_optimizer(config.optim)
+    batch, height, width, _ = images.shape
+    images = images.astype(jnp.float32) / 255.0
+    step_key = jax.random.fold_in(state.key, state.step)
+    branch_stats = {}
+    if config.data.context_window:
+        height, width = config.data.height, config.data.width
+        images_a, images_b, homographies, valid_b = make_window_branches(
+            step_key, images, height, width, config.homography, config.photometric
+        )
+        branch_stats["data/valid_b"] = jnp.mean(valid_b)
+    else:
+        images_a, images_b, homographies = make_branches(
+            step_key, images, config.homography, config.photometric
+        )
+
+    def loss_fn(params):
+        # One forward over both branches: the siamese weights are shared, and BatchNorm sees both
+        # views of every image.
+        pred, updates = model.apply(
+            {"params": params, "batch_stats": state.batch_stats},
+            jnp.concatenate([images_a, images_b]),
+            train=True,
+            mutable=["batch_stats"],
+        )
+        pred_a = jax.tree.map(lambda x: x[:batch], pred)
+        pred_b = jax.tree.map(lambda x: x[batch:], pred)
+        loss, metrics = losses.total_loss(
+            pred_a, pred_b, homographies, height, width, config.loss
+        )
+        metrics.update({f"pred/{k}": v for k, v in _prediction_stats(pred).items()})
+        return loss, (metrics, updates["batch_stats"])
+
+    (loss, (metrics, batch_stats)), grads = jax.value_and_grad(loss_fn, has_aux=True)(
+        state.params
+    )
+    updates, opt_state = optimizer.update(grads, state.opt_state, state.params)
+    params = optax.apply_updates(state.params, updates)
+    grad_norm = optax.tree.norm(grads)
+    finite = jnp.isfinite(loss) & jnp.isfinite(grad_norm) & jnp.isfinite(optax.tree.norm(params))
+    new_state = TrainState(state.step + 1, params, batch_stats, opt_state, state.key)
+    new_state = jax.tree.map(lambda new, old: jnp.where(finite, new, old), new_state, state)
+    metrics.update({"grad_norm": grad_norm, "finite": finite.astype(jnp.float32), **branch_stats})
+    return new_state, metrics
+
+
+def data_mesh() -> jax.sharding.Mesh:
+    """A 1-D mesh over every device (all hosts): the batch is split along it.
+
+    Auto axes let XLA propagate the batch sharding through the vmapped per-image code.
+    """
+    return jax.make_mesh(
+        (jax.device_count(),), ("data",), axis_types=(jax.sharding.AxisType.Auto,)
+    )
+
+
+def jit_train_step(config: config_lib.Config, mesh: jax.sharding.Mesh) -> Callable:
+    """``train_step`` jitted data-parallel: batch sharded over ``mesh``, state replicated.
+
+    Under plain jit with sharded inputs XLA inserts the gradient all-reduce itself, and the
+    BatchNorm statistics are global across devices, so N devices compute what one would.
+    """
+    replicated = NamedSharding(mesh, P())
+    return jax.jit(
+        lambda state, images: train_step(state, images, config),
+        in_shardings=(replicated, NamedSharding(mesh, P("data"))),
+        out_shardings=(replicated, replicated),
+        donate_argnums=0,
+        compiler_options=compiler_options(),
+    )

@@ -1,0 +1,259 @@
+"""Self-supervised training (paper section 3), the loop: ``fit`` trains or resumes the run in a
+workdir, one jitted step (:mod:`usp_jax.training.step`) per batch, logging, checkpoints, and
+one-line errors for what a user can cause (a diverged run, a full disk, a workdir in use).
+
+Branch A is the (photometrically augmented) image, branch B the same image warped by a random
+homography T and augmented independently (``step.make_branches``; with ``data.context_window``,
+B is rendered from a larger window around A so that T may rotate by any angle,
+``step.make_window_branches``). The host only decodes and crops: homographies, warps and
+augmentation are sampled on the device inside the jitted step, from a key derived from the step
+number, so a resumed run sees exactly the randomness an uninterrupted one would.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import pathlib
+import shutil
+import time
+from typing import Iterator
+
+import jax
+import numpy as np
+from jax.sharding import NamedSharding
+from jax.sharding import PartitionSpec as P
+
+from usp_jax.training import config as config_lib
+from usp_jax.training.metrics import (
+    MetricsWriter,
+    TrainingDiverged,
+    check_finite,
+    collapse_warnings,
+    progress_postfix,
+)
+from usp_jax.training.step import (
+    TrainState,
+    check_config,
+    create_state,
+    data_mesh,
+    jit_train_step,
+)
+from usp_jax.training.workdir import (
+    CONFIG_CHANGES_FILE,
+    ConfigChanged,
+    WorkdirError,
+    WorkdirLock,
+    check_resume,
+    check_workdir_path,
+    recorded_config,
+)
+
+log = logging.getLogger(__name__)
+
+
+def _first_line(error: BaseException) -> str:
+    lines = str(error).strip().splitlines()
+    return lines[0] if lines else type(error).__name__
+
+
+def _write_failed(error: OSError, what: str, workdir: pathlib.Path, mngr) -> WorkdirError:
+    latest = mngr.latest_step() if mngr is not None else None
+    where = error.filename or workdir
+    kept = f"; the last complete checkpoint is step {latest}" if latest is not None else ""
+    return WorkdirError(f"{what}: {where}: {error.strerror or _first_line(error)}{kept}")
+
+
+def _os_error_in(error: BaseException) -> OSError | None:
+    """The OSError behind ``error``, or None. Orbax's writes (TensorStore) fail with a
+    ValueError that carries the system's error code in its text: ``[os_error_code='28']``."""
+    import re
+
+    seen = set()
+    while error is not None and id(error) not in seen:
+        seen.add(id(error))
+        if isinstance(error, OSError) and error.errno is not None:
+            return error
+        code = re.search(r"os_error_code='(\d+)'", str(error))
+        if code:
+            path = re.search(r'(?:file|Failed writing:) "([^"]+)"', str(error))
+            number = int(code.group(1))
+            return OSError(number, os.strerror(number), path.group(1) if path else None)
+        error = error.__cause__ or error.__context__
+    return None
+
+
+def fit(
+    config: config_lib.Config,
+    workdir: str | pathlib.Path,
+    *,
+    progress: bool = True,
+    distributed: bool = False,
+    num_steps: int | None = None,
+    allow_config_change: bool = False,
+) -> TrainState:
+    """Trains (or resumes) the run in ``workdir`` up to ``num_steps`` (default config.num_steps).
+
+    Re-running with the same workdir resumes from its latest complete checkpoint. A workdir
+    trained with other settings is refused (``ConfigChanged``, naming the keys) unless
+    ``allow_config_change``; the keys of ``RESUMABLE_KEYS`` (the step count, logging and
+    checkpoint intervals, data loading) may always change, and a network or optimizer whose
+    arrays do not fit the checkpoints never continues. Everything is checked before the
+    workdir is created or changed; ``config.json`` is (re)written only once the run starts.
+    A lock on ``WORKDIR/train.lock`` keeps a second run out (``WorkdirError`` naming the holder).
+
+    Writes ``config.json``, ``checkpoints/``, ``metrics.jsonl`` and ``tensorboard/`` into workdir.
+    Raises ``TrainingDiverged`` on a non-finite loss, keeping the last good checkpoint, and
+    ``WorkdirError`` when a write fails (a full disk), naming the last complete checkpoint.
+    ``distributed=True`` calls ``jax.distributed.initialize()`` (multi-host: each process loads
+    its own slice of every global batch).
+    """
+    from tqdm.auto import tqdm
+
+    from usp_jax.training import checkpoint, data
+
+    if distributed:
+        jax.distributed.initialize()
+    workdir = pathlib.Path(workdir).expanduser().absolute()
+    num_steps = config.num_steps if num_steps is None else num_steps
+    check_config(config)
+    if isinstance(num_steps, bool) or not isinstance(num_steps, (int, np.integer)) or num_steps < 1:
+        raise ValueError(f"num_steps must be a positive integer, got {num_steps!r}")
+    if config.batch_size % jax.device_count():
+        raise ValueError(
+            f"batch_size {config.batch_size} is not divisible by the {jax.device_count()} devices"
+        )
+    is_main = jax.process_index() == 0
+    check_workdir_path(workdir)
+    # What can reject the inputs (the --init weights, the data path) runs before the workdir is
+    # written, so a bad argument leaves no half-made run behind to be resumed later.
+    initial = create_state(config)
+    dataset = data.make_dataset(
+        config.data,
+        config.batch_size // jax.process_count(),
+        seed=config.seed,
+        process_index=jax.process_index(),
+        process_count=jax.process_count(),
+    )
+    created = not workdir.exists()
+    lock = mngr = None
+    try:
+        try:
+            workdir.mkdir(parents=True, exist_ok=True)
+            lock = WorkdirLock(workdir) if is_main else None
+        except OSError as error:
+            raise WorkdirError(
+                f"workdir {workdir}: {error.strerror or _first_line(error)}"
+            ) from None
+        previous = recorded_config(workdir)
+        changes = {}
+        if previous is not None:
+            changes = check_resume(workdir, previous, config, allow_config_change)
+        mesh = data_mesh()
+        replicated = NamedSharding(mesh, P())
+        batch_sharding = NamedSharding(mesh, P("data"))
+        state = jax.device_put(initial, replicated)
+        mngr = checkpoint.manager(workdir / "checkpoints", keep=config.keep_checkpoints)
+        if mngr.latest_step() is not None:
+            latest = mngr.latest_step()
+            try:
+                state = checkpoint.restore_state(mngr, state)
+            except Exception as error:  # a damaged checkpoint: one line, the cause chained
+                raise WorkdirError(
+                    f"cannot restore checkpoint step {latest} of {workdir}:"
+                    f" {_first_line(error)}"
+                ) from error
+            log.info("resumed from step %d", int(state.step))
+        start = int(state.step)
+        if is_main:  # the run starts: only now is its record (re)written
+            if previous is None or previous != config:
+                config_lib.save(config, workdir / "config.json")
+            if changes:
+                with open(workdir / CONFIG_CHANGES_FILE, "a") as file:
+                    file.write(json.dumps({"step": start, "changes": {
+                        k: [old, new] for k, (old, new) in changes.items()}}) + "\n")
+        writer = MetricsWriter(workdir, enabled=is_main)
+    except BaseException as error:
+        if mngr is not None:
+            mngr.close()
+        if lock is not None:
+            lock.release()
+        if created and workdir.is_dir():  # made by this call for a run that never started
+            shutil.rmtree(workdir, ignore_errors=True)
+        cause = _os_error_in(error)
+        if cause is not None and not isinstance(error, (WorkdirError, ConfigChanged)):
+            raise _write_failed(cause, "cannot start the run", workdir, None) from error
+        raise
+    step_fn = jit_train_step(config, mesh)
+    bar = tqdm(
+        total=num_steps, initial=start, disable=not (progress and is_main), unit="step",
+        dynamic_ncols=True,
+    )
+    batches: Iterator[np.ndarray] = data.iterate(dataset, start)
+    last_log_time, last_log_step = time.perf_counter(), start
+    previous_metrics = None
+    warned: set[str] = set()
+    done = start
+    try:
+        try:
+            for step in range(start, num_steps):
+                local = next(batches)
+                images = jax.make_array_from_process_local_data(batch_sharding, local)
+                state, metrics = step_fn(state, images)
+                done = step + 1
+                # Checking the previous step while this one runs keeps the device busy.
+                check_finite(previous_metrics, done - 1, mngr)
+                previous_metrics = metrics
+                if done % config.log_every and done % config.checkpoint_every and done != num_steps:
+                    bar.update(1)
+                    continue
+                metrics = {k: float(v) for k, v in jax.device_get(metrics).items()}
+                check_finite(metrics, done, mngr)
+                now = time.perf_counter()
+                steps_per_s = (done - last_log_step) / max(now - last_log_time, 1e-9)
+                last_log_time, last_log_step = now, done
+                metrics.update({"steps_per_s": steps_per_s, **data.stats(dataset)})
+                # Warn once per kind, after the first steps have had a chance to move away from init.
+                for what, message in (collapse_warnings(metrics) if done >= 100 else {}).items():
+                    if what not in warned:
+                        warned.add(what)
+                        log.warning("step %d: %s", done, message)
+                writer.write(done, metrics)
+                bar.set_postfix(progress_postfix(metrics, steps_per_s, config.batch_size))
+                bar.update(1)
+                if done % config.checkpoint_every == 0 or done == num_steps:
+                    checkpoint.save(mngr, done, state, config)
+            mngr.wait_until_finished()
+        except (TrainingDiverged, KeyboardInterrupt):
+            raise
+        except Exception as error:
+            cause = _os_error_in(error)
+            if cause is None:
+                raise
+            _settle(mngr)
+            raise _write_failed(cause, f"writing step {done} failed", workdir, mngr) from error
+    finally:
+        _settle(mngr)
+        mngr.close()
+        bar.close()
+        _close_quietly(writer)
+        if lock is not None:
+            lock.release()
+    return state
+
+
+def _settle(mngr) -> None:
+    """Waits for a pending save; a failed one leaves only orbax's temporary folder, which
+    ``latest_step`` never reports."""
+    try:
+        mngr.wait_until_finished()
+    except Exception as error:  # reported by the caller's own error, or already raised
+        log.debug("pending checkpoint save failed: %s", _first_line(error))
+
+
+def _close_quietly(writer: MetricsWriter) -> None:
+    try:
+        writer.close()
+    except OSError as error:  # a full disk fails the final flush too
+        log.debug("closing the metrics writer failed: %s", _first_line(error))
