@@ -70,15 +70,21 @@ def load_config(path: pathlib.Path | str) -> config_lib.Config:
 
 
 def load_variables(path: pathlib.Path | str) -> tuple[config_lib.Config, dict]:
-    """For inference: (config, {"params", "batch_stats"}) of the latest checkpoint under ``path``.
-
-    Reads only what inference needs; the optimizer state is not materialised.
-    """
+    """For inference: (config, {"params", "batch_stats"}) of the latest checkpoint under ``path``,
+    on this process's first device, whatever devices the run that saved it trained on."""
     directory, step = resolve(path)
-    mngr = ocp.CheckpointManager(directory)
+    mngr = ocp.CheckpointManager(directory, item_handlers={
+        "state": ocp.StandardCheckpointHandler(), "config": ocp.JsonCheckpointHandler()})
     cfg = config_lib.from_dict(
         mngr.restore(step, args=ocp.args.Composite(config=ocp.args.JsonRestore()))["config"]
     )
-    restored = mngr.restore(step, args=ocp.args.Composite(state=ocp.args.StandardRestore()))
+    # Onto this process's first device: a run on several devices or hosts saved its arrays
+    # with shardings over those, which orbax refuses to recreate on other devices.
+    device = jax.sharding.SingleDeviceSharding(jax.local_devices()[0])
+    abstract = jax.tree.map(
+        lambda leaf: jax.ShapeDtypeStruct(leaf.shape, leaf.dtype, sharding=device),
+        mngr.item_metadata(step)["state"],
+    )
+    restored = mngr.restore(step, args=ocp.args.Composite(state=ocp.args.StandardRestore(abstract)))
     state = restored["state"]
     return cfg, {"params": state["params"], "batch_stats": state["batch_stats"]}
