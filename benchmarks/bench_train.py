@@ -11,6 +11,13 @@ finiteness guard, donated state); the PyTorch step does the same work
     python3 benchmarks/bench_train.py --check         # also: same loss and gradients as PyTorch
     python3 benchmarks/bench_train.py --profile       # JAX step time by op category
     python3 benchmarks/bench_train.py --no-torch      # without the optional torch dependency
+    python3 benchmarks/bench_train.py --no-torch --source data/corpus/train   # its pipeline rate
+
+Beside the step it times the input pipeline alone (``data.measure_throughput``: decoding and
+cropping threads, no training) on ``--source`` and prints both as photos per second, and the
+step's images per second per device: on an accelerator, a pipeline slower than the step it
+feeds shows at once. Each process of a multi-process run decodes only its share of a batch, so
+the pipeline's rate on one host compares with the step's photos/s divided by the process count.
 """
 
 from __future__ import annotations
@@ -57,6 +64,25 @@ def homographies_for(config: config_lib.Config, count: int, batch: int) -> np.nd
     sample = jax.jit(jax.vmap(lambda k: geometry.sample_homography(k, height, width,
                                                                    config.homography)))
     return np.array(sample(keys)).reshape(count, batch, 3, 3)
+
+
+def input_report(config: config_lib.Config, step_s: float, source: str, steps: int) -> dict:
+    """Photos per second the step consumes (per process) against what the input pipeline alone
+    delivers on this host, with the step's images per second per device.
+
+    One photo feeds both branches: a step over ``batch_size`` photos runs 2 x batch_size images
+    through the network, spread over every device.
+    """
+    consumed = config.batch_size / jax.process_count() / step_s
+    pipeline = config_lib.override(config, [f"data.source={source}"]).data
+    delivered = data.measure_throughput(pipeline, config.batch_size // jax.process_count(), steps)
+    return {
+        "images_per_s_per_device": 2 * config.batch_size / step_s / jax.device_count(),
+        "step_photos_per_s_per_process": consumed,
+        "pipeline_photos_per_s": delivered,
+        "pipeline_threads": pipeline.num_workers,
+        "pipeline_over_step": delivered / consumed,
+    }
 
 
 def check_against_torch(config: config_lib.Config, images: np.ndarray) -> dict:
@@ -112,6 +138,11 @@ def main() -> None:
     parser.add_argument("--no-torch", action="store_true", help="time the JAX step alone")
     parser.add_argument("--check", action="store_true", help="compare loss and gradients")
     parser.add_argument("--profile", action="store_true", help="JAX step by op category")
+    parser.add_argument("--source", default="sample",
+                        help="data source whose input pipeline is timed (default: the photos"
+                             " bundled with the installed packages)")
+    parser.add_argument("--pipeline-steps", type=int, default=10,
+                        help="batches the input pipeline is timed over")
     parser.add_argument("--json", help="also write the results to this file")
     args = parser.parse_args()
 
@@ -160,6 +191,14 @@ def main() -> None:
     print(f"JAX   step {common.summary(jax_times)}  {2 * batch / jax_s:5.2f} img/s  "
           f"{gflop / jax_s:5.1f} GFLOP/s = {gflop / jax_s / ceiling:.0%} of the matmul ceiling")
     results.update(jax_step_s=jax_times)
+    feed = input_report(config, jax_s, args.source, args.pipeline_steps)
+    print(f"JAX   step {feed['images_per_s_per_device']:.2f} img/s per device"
+          f" ({jax.device_count()} {jax.devices()[0].platform}); it consumes"
+          f" {feed['step_photos_per_s_per_process']:.1f} photos/s per process, the input"
+          f" pipeline alone delivers {feed['pipeline_photos_per_s']:.1f} photos/s on"
+          f" {args.source!r} with {feed['pipeline_threads']} threads:"
+          f" {feed['pipeline_over_step']:.1f}x the step's need (below 1: input starves the step)")
+    results.update(input=feed)
     if torch_times:
         torch_s = statistics.median(torch_times)
         print(f"torch step {common.summary(torch_times)}  {2 * batch / torch_s:5.2f} img/s  "

@@ -16,8 +16,10 @@ import logging
 import math
 import os
 import pathlib
+import signal
 import sys
 import tempfile
+import traceback
 
 import numpy as np
 
@@ -142,6 +144,7 @@ def _load_detector(args, **options):
 def cmd_train(args) -> None:
     from usp_jax.training import config as config_lib
     from usp_jax.training import train
+    from usp_jax.training.step import check_config
 
     cfg = config_lib.load(args.config)
     overrides = list(args.overrides)
@@ -159,10 +162,36 @@ def cmd_train(args) -> None:
                 f"--steps {args.steps} and num_steps={given[-1]} disagree; give one of them"
             )
         cfg = config_lib.override(cfg, [f"num_steps={args.steps}"])
-    print(f"training {args.config} config on {cfg.data.source} into {args.workdir}")
+    who = ""
+    if _distributed(args):
+        from usp_jax.training import distributed
+
+        # Everything a process can check alone is checked before it waits for the others.
+        check_config(cfg)
+        launch = distributed.Launch(args.coordinator, args.num_processes, args.process_id,
+                                    args.init_timeout, args.heartbeat_timeout)
+        distributed.check_launch(launch, cfg.batch_size)
+        distributed.initialize(launch, report=lambda line: _user_error("train", line))
+        import jax
+
+        who = f"process {jax.process_index()} of {jax.process_count()}: "
+    print(f"{who}training {args.config} config on {cfg.data.source} into {args.workdir}")
     state = train.fit(cfg, args.workdir, progress=not args.no_progress,
-                      distributed=args.distributed, allow_config_change=args.allow_config_change)
-    print(f"done: step {int(state.step)}; checkpoints in {pathlib.Path(args.workdir) / 'checkpoints'}")
+                      allow_config_change=args.allow_config_change)
+    step, checkpoints = int(state.step), pathlib.Path(args.workdir) / "checkpoints"
+    if step < cfg.num_steps:  # a multi-process run stopped together on SIGTERM
+        print(f"{who}stopped at step {step} of {cfg.num_steps} on SIGTERM, checkpoint saved in"
+              f" {checkpoints}; rerun the same command to resume")
+        return 128 + signal.SIGTERM  # as if SIGTERM had ended it: the run is not finished
+    print(f"{who}done: step {step}; checkpoints in {checkpoints}")
+    return 0
+
+
+def _distributed(args) -> bool:
+    """Whether `train` joins a multi-process run: --distributed, or any of its explicit parts."""
+    return args.distributed or any(
+        value is not None for value in (args.coordinator, args.num_processes, args.process_id)
+    )
 
 
 def cmd_evaluate(args) -> None:
@@ -327,7 +356,20 @@ def build_parser() -> argparse.ArgumentParser:
                    help="train up to this step (num_steps=N; giving both, they must agree)")
     p.add_argument("--init", help="start from these weights (.npz from `usp-jax export`)")
     p.add_argument("--distributed", action="store_true",
-                   help="multi-host: call jax.distributed.initialize() first")
+                   help="join a multi-process run (one process per host or accelerator); the"
+                        " cluster is detected as JAX does (SLURM, Open MPI, Cloud TPU,"
+                        " Kubernetes) unless the three options below are given")
+    p.add_argument("--coordinator", metavar="HOST:PORT",
+                   help="address of process 0, which runs the coordination service (implies"
+                        " --distributed)")
+    p.add_argument("--num-processes", type=_positive, metavar="N",
+                   help="processes in the run (implies --distributed)")
+    p.add_argument("--process-id", type=_non_negative, metavar="I",
+                   help="this process's index, 0 to N-1 (implies --distributed)")
+    p.add_argument("--init-timeout", type=_positive, default=300, metavar="S",
+                   help="seconds to wait for every process to join before giving up (default 300)")
+    p.add_argument("--heartbeat-timeout", type=_positive, default=100, metavar="S",
+                   help="seconds of silence after which a process counts as dead (default 100)")
     p.add_argument("--allow-config-change", action="store_true",
                    help="resume a workdir although settings differ from its config.json (the"
                         " change is logged to config_changes.jsonl); without it such a resume"
@@ -478,21 +520,51 @@ def _main(argv: list[str] | None) -> int:
     # its threads; train reports it again as one line naming the last complete checkpoint.
     if not args.verbose:
         logging.getLogger("absl").setLevel(logging.CRITICAL)
+    from usp_jax.training import distributed
+
+    try:
+        code = args.func(args) or 0
+    except BaseException as err:
+        code, message = _classify(err)
+        if distributed.joined():  # a multi-process run ends in every process
+            own = message or (
+                f"{type(err).__name__}: {distributed.first_line(err)} (its traceback is in its log)")
+
+            def show(text: str) -> None:
+                if text != own:  # another process failed first: its error, not the broken link
+                    _user_error(args.command, text)
+                elif message is None:
+                    traceback.print_exc()
+                else:
+                    _show(args.command, code, message)
+
+            distributed.leave_after_failure(code, own, show)
+        if message is None:
+            raise
+        _show(args.command, code, message)
+        return code
+    return code
+
+
+def _classify(err: BaseException) -> tuple[int, str | None]:
+    """(exit status, one-line message) of a failure; the message is None for an internal error
+    (a bug), which shows its traceback instead."""
+    from usp_jax.training.distributed import DistributedError
     from usp_jax.training.metrics import TrainingDiverged
     from usp_jax.training.workdir import WorkdirError
 
-    try:
-        args.func(args)
-    except (*_USER_ERRORS, TrainingDiverged, WorkdirError) as err:
+    if isinstance(err, KeyboardInterrupt):
+        return 130, "interrupted"
+    user = isinstance(err, (*_USER_ERRORS, TrainingDiverged, WorkdirError, DistributedError))
+    if user or (isinstance(err, OSError) and err.errno in _USER_ERRNOS):
         named = isinstance(err, OSError) and err.filename and err.strerror
-        _user_error(args.command, f"{err.filename}: {err.strerror}" if named else str(err))
-        return 2
-    except OSError as err:
-        if err.errno not in _USER_ERRNOS:
-            raise
-        _user_error(args.command, f"{err.filename}: {err.strerror}" if err.filename else str(err))
-        return 2
-    except KeyboardInterrupt:
-        print(f"usp-jax {args.command}: interrupted", file=sys.stderr)
-        return 130
-    return 0
+        return 2, f"{err.filename}: {err.strerror}" if named else str(err)
+    return 1, None
+
+
+def _show(command: str, code: int, message: str) -> None:
+    if code == 130:
+        print(f"usp-jax {command}: {message}", file=sys.stderr)
+    else:
+        _user_error(command, message)
+

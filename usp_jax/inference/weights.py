@@ -146,14 +146,22 @@ def resolve_checkpoint(path: str | pathlib.Path) -> tuple[pathlib.Path, int]:
 
 def read_checkpoint(path: str | pathlib.Path) -> tuple[dict, dict]:
     """(the run's config as a dict, ``{"params", "batch_stats"}``) of the checkpoint under
-    ``path`` (:func:`resolve_checkpoint`). Reads only what inference needs; the optimizer state
-    is not materialised."""
+    ``path`` (:func:`resolve_checkpoint`), on this process's first device, whatever devices the
+    run that saved it trained on. Reads only what inference needs."""
     import orbax.checkpoint as ocp
 
     directory, step = resolve_checkpoint(path)
-    mngr = ocp.CheckpointManager(directory)
+    mngr = ocp.CheckpointManager(directory, item_handlers={
+        "state": ocp.StandardCheckpointHandler(), "config": ocp.JsonCheckpointHandler()})
     config = mngr.restore(step, args=ocp.args.Composite(config=ocp.args.JsonRestore()))["config"]
-    restored = mngr.restore(step, args=ocp.args.Composite(state=ocp.args.StandardRestore()))
+    # Onto this process's first device: a run on several devices or hosts saved its arrays
+    # with shardings over those, which orbax refuses to recreate on other devices.
+    device = jax.sharding.SingleDeviceSharding(jax.local_devices()[0])
+    abstract = jax.tree.map(
+        lambda leaf: jax.ShapeDtypeStruct(leaf.shape, leaf.dtype, sharding=device),
+        mngr.item_metadata(step)["state"],
+    )
+    restored = mngr.restore(step, args=ocp.args.Composite(state=ocp.args.StandardRestore(abstract)))
     state = restored["state"]
     return config, {"params": state["params"], "batch_stats": state["batch_stats"]}
 

@@ -26,6 +26,7 @@ from jax.sharding import NamedSharding
 from jax.sharding import PartitionSpec as P
 
 from usp_jax.training import config as config_lib
+from usp_jax.training import distributed as multihost
 from usp_jax.training.metrics import (
     MetricsWriter,
     TrainingDiverged,
@@ -89,7 +90,7 @@ def fit(
     workdir: str | pathlib.Path,
     *,
     progress: bool = True,
-    distributed: bool = False,
+    distributed: bool | multihost.Launch = False,
     num_steps: int | None = None,
     allow_config_change: bool = False,
 ) -> TrainState:
@@ -106,25 +107,37 @@ def fit(
     Writes ``config.json``, ``checkpoints/``, ``metrics.jsonl`` and ``tensorboard/`` into workdir.
     Raises ``TrainingDiverged`` on a non-finite loss, keeping the last good checkpoint, and
     ``WorkdirError`` when a write fails (a full disk), naming the last complete checkpoint.
-    ``distributed=True`` calls ``jax.distributed.initialize()`` (multi-host: each process loads
-    its own slice of every global batch).
+    ``distributed`` (True, or a ``distributed.Launch`` with explicit coordinator, process count
+    and id) joins a multi-process run first unless this process has joined one already
+    (``distributed.initialize``). Every process then runs ``fit`` with the same arguments and
+    loads only its share of each global batch; only process 0 writes the config, metrics and
+    TensorBoard files, all of them take part in every checkpoint save and restore (the workdir
+    must be on storage they share). When one of them gets SIGTERM, which JAX's runtime catches
+    there, all save a checkpoint at the same step and return early (``state.step < num_steps``).
+    After a failure in a multi-process run the process must
+    exit (the CLI does, ``distributed.leave_after_failure``): its checkpoint manager is left
+    as it is, because closing it waits on processes that are gone.
     """
     from tqdm.auto import tqdm
 
     from usp_jax.training import checkpoint, data
 
-    if distributed:
-        jax.distributed.initialize()
     workdir = pathlib.Path(workdir).expanduser().absolute()
     num_steps = config.num_steps if num_steps is None else num_steps
     check_config(config)
     if isinstance(num_steps, bool) or not isinstance(num_steps, (int, np.integer)) or num_steps < 1:
         raise ValueError(f"num_steps must be a positive integer, got {num_steps!r}")
+    if distributed and not jax.distributed.is_initialized():
+        launch = distributed if isinstance(distributed, multihost.Launch) else multihost.Launch()
+        multihost.check_launch(launch, config.batch_size)
+        multihost.initialize(launch)
+    multihost.check_batch(config.batch_size, jax.process_count())
     if config.batch_size % jax.device_count():
         raise ValueError(
             f"batch_size {config.batch_size} is not divisible by the {jax.device_count()} devices"
         )
     is_main = jax.process_index() == 0
+    single = jax.process_count() == 1
     check_workdir_path(workdir)
     # What can reject the inputs (the --init weights, the data path) runs before the workdir is
     # written, so a bad argument leaves no half-made run behind to be resumed later.
@@ -150,6 +163,8 @@ def fit(
         changes = {}
         if previous is not None:
             changes = check_resume(workdir, previous, config, allow_config_change)
+        # Every process has read the record before process 0 rewrites it below.
+        _sync_processes("usp_jax: workdir checked")
         mesh = data_mesh()
         replicated = NamedSharding(mesh, P())
         batch_sharding = NamedSharding(mesh, P("data"))
@@ -179,7 +194,9 @@ def fit(
             mngr.close()
         if lock is not None:
             lock.release()
-        if created and workdir.is_dir():  # made by this call for a run that never started
+        # Made by this call for a run that never started. Process 0's to remove: another
+        # process may have found it already made.
+        if created and is_main and workdir.is_dir():
             shutil.rmtree(workdir, ignore_errors=True)
         cause = _os_error_in(error)
         if cause is not None and not isinstance(error, (WorkdirError, ConfigChanged)):
@@ -195,6 +212,7 @@ def fit(
     previous_metrics = None
     warned: set[str] = set()
     done = start
+    finished = False
     try:
         try:
             for step in range(start, num_steps):
@@ -205,7 +223,9 @@ def fit(
                 # Checking the previous step while this one runs keeps the device busy.
                 check_finite(previous_metrics, done - 1, mngr)
                 previous_metrics = metrics
-                if done % config.log_every and done % config.checkpoint_every and done != num_steps:
+                stop = multihost.preempted(done)
+                last = stop or done == num_steps
+                if done % config.log_every and done % config.checkpoint_every and not last:
                     bar.update(1)
                     continue
                 metrics = {k: float(v) for k, v in jax.device_get(metrics).items()}
@@ -222,25 +242,42 @@ def fit(
                 writer.write(done, metrics)
                 bar.set_postfix(progress_postfix(metrics, steps_per_s, config.batch_size))
                 bar.update(1)
-                if done % config.checkpoint_every == 0 or done == num_steps:
+                if done % config.checkpoint_every == 0 or last:
                     checkpoint.save(mngr, done, state, config)
+                if stop:
+                    log.warning("stopping at step %d: a process got SIGTERM (its job is ending or"
+                                " being preempted); rerun to resume", done)
+                    break
             mngr.wait_until_finished()
+            finished = True
         except (TrainingDiverged, KeyboardInterrupt):
             raise
         except Exception as error:
             cause = _os_error_in(error)
             if cause is None:
                 raise
-            _settle(mngr)
+            if single:
+                _settle(mngr)
             raise _write_failed(cause, f"writing step {done} failed", workdir, mngr) from error
     finally:
-        _settle(mngr)
-        mngr.close()
+        # A failed multi-process run leaves its pending save: finishing it would wait for
+        # processes that have stopped, and this one is about to exit.
+        if finished or single:
+            _settle(mngr)
+            mngr.close()
         bar.close()
         _close_quietly(writer)
         if lock is not None:
             lock.release()
     return state
+
+
+def _sync_processes(name: str) -> None:
+    """Waits until every process of a multi-process run gets here (a no-op for one process)."""
+    if jax.process_count() > 1:
+        from jax.experimental import multihost_utils
+
+        multihost_utils.sync_global_devices(name)
 
 
 def _settle(mngr) -> None:
