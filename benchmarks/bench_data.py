@@ -17,13 +17,14 @@ import json
 import statistics
 import time
 
-import jax
-from jax.sharding import NamedSharding, PartitionSpec as P
-
 import common
-from usp_jax.training import step as step_lib
+import jax
+from jax.sharding import NamedSharding
+from jax.sharding import PartitionSpec as P
+
 from usp_jax import config as config_lib
 from usp_jax.training import data
+from usp_jax.training import step as step_lib
 
 
 def steps_per_second(step, state, batches, steps: int) -> tuple[float, object]:
@@ -51,8 +52,10 @@ def main() -> None:
         config = config_lib.override(config, [f"data.source={args.source}"])
     batch = config.batch_size
     print(common.environment())
-    print(f"{args.config}: {batch} photos per step at {config.data.height}x{config.data.width}, "
-          f"source {config.data.source!r}, {config.data.num_workers} decode threads")
+    print(
+        f"{args.config}: {batch} photos per step at {config.data.height}x{config.data.width}, "
+        f"source {config.data.source!r}, {config.data.num_workers} decode threads"
+    )
 
     pipeline_rate = data.measure_throughput(config.data, batch, args.steps)
     print(f"pipeline alone: {pipeline_rate:.1f} photos/s")
@@ -80,16 +83,27 @@ def main() -> None:
         rates["real decoding (data.iterate)"].append(rate)
     for name, values in rates.items():
         rate = statistics.median(values)
-        print(f"train step, {name:28s} {rate:6.3f} steps/s = {rate * batch:6.2f} photos/s "
-              f"(rounds: {', '.join(f'{v:.3f}' for v in values)})")
+        print(
+            f"train step, {name:28s} {rate:6.3f} steps/s = {rate * batch:6.2f} photos/s "
+            f"(rounds: {', '.join(f'{v:.3f}' for v in values)})"
+        )
     ratio = statistics.median(rates["real decoding (data.iterate)"]) / statistics.median(
-        rates["cached arrays"])
+        rates["cached arrays"]
+    )
     print(f"real decoding / cached: {ratio:.3f} (1 = the pipeline never starves the step)")
     if args.json:
         with open(args.json, "w") as f:
-            json.dump({"config": args.config, "source": config.data.source,
-                       "pipeline_photos_per_s": pipeline_rate, "steps_per_s": rates,
-                       "ratio": ratio}, f, indent=1)
+            json.dump(
+                {
+                    "config": args.config,
+                    "source": config.data.source,
+                    "pipeline_photos_per_s": pipeline_rate,
+                    "steps_per_s": rates,
+                    "ratio": ratio,
+                },
+                f,
+                indent=1,
+            )
 
 
 if __name__ == "__main__":

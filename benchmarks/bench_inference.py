@@ -25,15 +25,14 @@ import argparse
 import json
 import statistics
 
+import common
 import cv2
 import jax
 import numpy as np
 
-import common
-from usp_jax.evaluation import baselines
-from usp_jax.evaluation import benchmark
-from usp_jax.inference import PRETRAINED, Detector
 from usp_jax.core.model import fast_config, init_variables
+from usp_jax.evaluation import baselines, benchmark
+from usp_jax.inference import PRETRAINED, Detector
 
 NETWORKS = ("paper", "fast")
 OPENCV = ("ORB", "AKAZE", "SIFT")
@@ -53,8 +52,9 @@ def load_network(name: str, top_n: int) -> tuple[Detector, str]:
 def detector_gflop(detector: Detector, images: np.ndarray) -> float:
     """XLA's FLOP count of one compiled detector call, per image."""
     sizes = np.tile(np.array(images.shape[1:3], np.int32), (len(images), 1))
-    compiled = detector._forward.lower(detector.variables, images, sizes,
-                                       top_n=detector.top_n).compile()
+    compiled = detector._forward.lower(
+        detector.variables, images, sizes, top_n=detector.top_n
+    ).compile()
     analysis = compiled.cost_analysis()
     analysis = analysis[0] if isinstance(analysis, list) else analysis
     return analysis["flops"] / 1e9 / len(images)
@@ -130,12 +130,21 @@ def main() -> None:
             for run in runs.values():  # compiles the detectors
                 jax.block_until_ready(run())
             for label, seconds in common.interleaved(runs, args.rounds, args.block).items():
-                results["rows"].append({"height": height, "width": width, "batch": batch,
-                                        "method": label, "seconds": seconds})
+                results["rows"].append(
+                    {
+                        "height": height,
+                        "width": width,
+                        "batch": batch,
+                        "method": label,
+                        "seconds": seconds,
+                    }
+                )
         for name, (detector, weights) in networks.items():
             results["networks"][f"{name} {size}"] = {
                 "gflop_per_image": detector_gflop(detector, frames[:1]),
-                "parameters": int(sum(x.size for x in jax.tree.leaves(detector.variables["params"]))),
+                "parameters": int(
+                    sum(x.size for x in jax.tree.leaves(detector.variables["params"]))
+                ),
                 "weights": weights,
             }
         if xfeat is None:
@@ -143,14 +152,19 @@ def main() -> None:
     ceiling = results["matmul_gflops"] = common.settled_ceiling(ceiling)
     print(f"matmul ceiling, the better of before and after the timings: {ceiling:.0f} GFLOP/s")
     for key, info in results["networks"].items():
-        print(f"  {key}: {info['gflop_per_image']:.2f} GFLOP per image (XLA),"
-              f" {info['parameters']:,} parameters, {info['weights']}")
+        print(
+            f"  {key}: {info['gflop_per_image']:.2f} GFLOP per image (XLA),"
+            f" {info['parameters']:,} parameters, {info['weights']}"
+        )
     for size in args.size:
         height, width = (int(v) for v in size.lower().split("x"))
         for batch in args.batch:
             print(f"{size}, batch {batch}, top {benchmark.protocol_top_n(height, width)} points:")
-            rows = [r for r in results["rows"]
-                    if (r["height"], r["width"], r["batch"]) == (height, width, batch)]
+            rows = [
+                r
+                for r in results["rows"]
+                if (r["height"], r["width"], r["batch"]) == (height, width, batch)
+            ]
             paper_rate = None
             for row in rows:
                 seconds = statistics.median(row["seconds"])

@@ -27,18 +27,18 @@ import json
 import statistics
 import time
 
+import common
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jax.sharding import NamedSharding, PartitionSpec as P
+from jax.sharding import NamedSharding
+from jax.sharding import PartitionSpec as P
 
-import common
-from usp_jax.training import step as step_lib
 from usp_jax import config as config_lib
-from usp_jax.training import data
-from usp_jax.core import geometry
-from usp_jax.core import losses
+from usp_jax.core import geometry, losses
 from usp_jax.core.model import UnsuperPoint
+from usp_jax.training import data
+from usp_jax.training import step as step_lib
 
 
 def photo_batch(config: config_lib.Config, batch: int) -> np.ndarray:
@@ -61,8 +61,9 @@ def homographies_for(config: config_lib.Config, count: int, batch: int) -> np.nd
     """[count, batch, 3, 3] homographies from the JAX sampler, for the PyTorch steps."""
     height, width = config.data.height, config.data.width
     keys = jax.random.split(jax.random.PRNGKey(1), count * batch)
-    sample = jax.jit(jax.vmap(lambda k: geometry.sample_homography(k, height, width,
-                                                                   config.homography)))
+    sample = jax.jit(
+        jax.vmap(lambda k: geometry.sample_homography(k, height, width, config.homography))
+    )
     return np.array(sample(keys)).reshape(count, batch, 3, 3)
 
 
@@ -100,9 +101,12 @@ def check_against_torch(config: config_lib.Config, images: np.ndarray) -> dict:
     model = UnsuperPoint(config.model)
 
     def loss_fn(params):
-        pred, _ = model.apply({"params": params, "batch_stats": state.batch_stats},
-                              jnp.concatenate([images_a, images_b]), train=True,
-                              mutable=["batch_stats"])
+        pred, _ = model.apply(
+            {"params": params, "batch_stats": state.batch_stats},
+            jnp.concatenate([images_a, images_b]),
+            train=True,
+            mutable=["batch_stats"],
+        )
         pred_a = jax.tree.map(lambda x: x[:batch], pred)
         pred_b = jax.tree.map(lambda x: x[batch:], pred)
         return losses.total_loss(pred_a, pred_b, homographies, height, width, config.loss)[0]
@@ -110,14 +114,19 @@ def check_against_torch(config: config_lib.Config, images: np.ndarray) -> dict:
     jax_loss, jax_grads = jax.jit(jax.value_and_grad(loss_fn))(state.params)
     reference = torch_reference.TrainStep(config)
     torch_reference.load_flax_variables(
-        reference.model, {"params": state.params, "batch_stats": state.batch_stats})
+        reference.model, {"params": state.params, "batch_stats": state.batch_stats}
+    )
 
     def nchw(x):
-        return torch.from_numpy(np.asarray(x)).permute(0, 3, 1, 2).contiguous(
-            memory_format=torch.channels_last)
+        return (
+            torch.from_numpy(np.asarray(x))
+            .permute(0, 3, 1, 2)
+            .contiguous(memory_format=torch.channels_last)
+        )
 
-    torch_loss = reference.loss(nchw(images_a), nchw(images_b),
-                                torch.from_numpy(np.asarray(homographies)))
+    torch_loss = reference.loss(
+        nchw(images_a), nchw(images_b), torch.from_numpy(np.asarray(homographies))
+    )
     torch_loss.backward()
     torch_norm = float(torch.sqrt(sum((p.grad**2).sum() for p in reference.model.parameters())))
     return {
@@ -138,11 +147,15 @@ def main() -> None:
     parser.add_argument("--no-torch", action="store_true", help="time the JAX step alone")
     parser.add_argument("--check", action="store_true", help="compare loss and gradients")
     parser.add_argument("--profile", action="store_true", help="JAX step by op category")
-    parser.add_argument("--source", default="sample",
-                        help="data source whose input pipeline is timed (default: the photos"
-                             " bundled with the installed packages)")
-    parser.add_argument("--pipeline-steps", type=int, default=10,
-                        help="batches the input pipeline is timed over")
+    parser.add_argument(
+        "--source",
+        default="sample",
+        help="data source whose input pipeline is timed (default: the photos"
+        " bundled with the installed packages)",
+    )
+    parser.add_argument(
+        "--pipeline-steps", type=int, default=10, help="batches the input pipeline is timed over"
+    )
     parser.add_argument("--json", help="also write the results to this file")
     args = parser.parse_args()
 
@@ -156,14 +169,23 @@ def main() -> None:
     print(common.environment())
     ceiling = common.matmul_ceiling()
     gflop = 2 * batch * common.train_gflop(config.model, height, width)
-    print(f"step: {batch} images per branch at {height}x{width}, {gflop:.0f} GFLOP of convolutions;"
-          f" matmul ceiling {ceiling:.0f} GFLOP/s")
+    print(
+        f"step: {batch} images per branch at {height}x{width}, {gflop:.0f} GFLOP of convolutions;"
+        f" matmul ceiling {ceiling:.0f} GFLOP/s"
+    )
 
     images = photo_batch(config, batch)
     compiled, state, device_images, compile_s = jax_step(config, images)
     print(f"JAX compile: {compile_s:.1f} s")
-    results = {"config": args.config, "batch": batch, "height": height, "width": width,
-               "compile_s": compile_s, "matmul_gflops": ceiling, "gflop_per_step": gflop}
+    results = {
+        "config": args.config,
+        "batch": batch,
+        "height": height,
+        "width": width,
+        "compile_s": compile_s,
+        "matmul_gflops": ceiling,
+        "gflop_per_step": gflop,
+    }
 
     def run_jax():
         nonlocal state
@@ -177,8 +199,9 @@ def main() -> None:
 
         reference = torch_reference.TrainStep(config)
         torch_images = torch.from_numpy(images)
-        homographies = iter(torch.from_numpy(
-            homographies_for(config, args.rounds * (args.block + 1), batch)))
+        homographies = iter(
+            torch.from_numpy(homographies_for(config, args.rounds * (args.block + 1), batch))
+        )
         print(f"torch {torch.__version__}, {torch.get_num_threads()} threads")
         runs["torch"] = lambda: reference(torch_images, next(homographies))
     times = common.interleaved(runs, args.rounds, args.block)
@@ -188,28 +211,36 @@ def main() -> None:
     jax_times, torch_times = times["jax"], times.get("torch")
 
     jax_s = statistics.median(jax_times)
-    print(f"JAX   step {common.summary(jax_times)}  {2 * batch / jax_s:5.2f} img/s  "
-          f"{gflop / jax_s:5.1f} GFLOP/s = {gflop / jax_s / ceiling:.0%} of the matmul ceiling")
+    print(
+        f"JAX   step {common.summary(jax_times)}  {2 * batch / jax_s:5.2f} img/s  "
+        f"{gflop / jax_s:5.1f} GFLOP/s = {gflop / jax_s / ceiling:.0%} of the matmul ceiling"
+    )
     results.update(jax_step_s=jax_times)
     feed = input_report(config, jax_s, args.source, args.pipeline_steps)
-    print(f"JAX   step {feed['images_per_s_per_device']:.2f} img/s per device"
-          f" ({jax.device_count()} {jax.devices()[0].platform}); it consumes"
-          f" {feed['step_photos_per_s_per_process']:.1f} photos/s per process, the input"
-          f" pipeline alone delivers {feed['pipeline_photos_per_s']:.1f} photos/s on"
-          f" {args.source!r} with {feed['pipeline_threads']} threads:"
-          f" {feed['pipeline_over_step']:.1f}x the step's need (below 1: input starves the step)")
+    print(
+        f"JAX   step {feed['images_per_s_per_device']:.2f} img/s per device"
+        f" ({jax.device_count()} {jax.devices()[0].platform}); it consumes"
+        f" {feed['step_photos_per_s_per_process']:.1f} photos/s per process, the input"
+        f" pipeline alone delivers {feed['pipeline_photos_per_s']:.1f} photos/s on"
+        f" {args.source!r} with {feed['pipeline_threads']} threads:"
+        f" {feed['pipeline_over_step']:.1f}x the step's need (below 1: input starves the step)"
+    )
     results.update(input=feed)
     if torch_times:
         torch_s = statistics.median(torch_times)
-        print(f"torch step {common.summary(torch_times)}  {2 * batch / torch_s:5.2f} img/s  "
-              f"{gflop / torch_s:5.1f} GFLOP/s = {gflop / torch_s / ceiling:.0%} of the matmul "
-              "ceiling")
+        print(
+            f"torch step {common.summary(torch_times)}  {2 * batch / torch_s:5.2f} img/s  "
+            f"{gflop / torch_s:5.1f} GFLOP/s = {gflop / torch_s / ceiling:.0%} of the matmul "
+            "ceiling"
+        )
         print(f"JAX / torch step time: {jax_s / torch_s:.2f} (below 1: JAX faster)")
         results.update(torch_step_s=torch_times, ratio=jax_s / torch_s)
     if args.check:
         check = check_against_torch(config, images)
-        print("check (same branch images, homographies and weights): " + ", ".join(
-            f"{k} {v:.6g}" for k, v in check.items()))
+        print(
+            "check (same branch images, homographies and weights): "
+            + ", ".join(f"{k} {v:.6g}" for k, v in check.items())
+        )
         results["check"] = check
     if args.profile:
         print("JAX step by op category (wall time per step):")

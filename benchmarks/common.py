@@ -15,24 +15,13 @@ import re
 import statistics
 import tempfile
 import time
-from typing import Callable
+from collections.abc import Callable
 
 import jax
 import jax.numpy as jnp
 
 from usp_jax.core.model import ModelConfig, UnsuperPoint, init_variables
-
-
-def time_calls(fn: Callable[[], object], repeats: int, warmup: int = 1) -> list[float]:
-    """Seconds of ``repeats`` calls of ``fn`` (after ``warmup`` untimed ones), each waited for."""
-    for _ in range(warmup):
-        jax.block_until_ready(fn())
-    times = []
-    for _ in range(repeats):
-        start = time.perf_counter()
-        jax.block_until_ready(fn())
-        times.append(time.perf_counter() - start)
-    return times
+from usp_jax.evaluation.benchmark import time_calls  # noqa: F401 (the scripts' timer)
 
 
 def interleaved(
@@ -102,8 +91,9 @@ def train_gflop(config: ModelConfig, height: int, width: int) -> float:
 
     def loss(variables, images):
         def total(params):
-            pred, _ = model.apply({**variables, "params": params}, images, train=True,
-                                  mutable=["batch_stats"])
+            pred, _ = model.apply(
+                {**variables, "params": params}, images, train=True, mutable=["batch_stats"]
+            )
             return sum(jnp.sum(leaf) for leaf in jax.tree.leaves(pred))
 
         return jax.grad(total)(variables["params"])
@@ -189,21 +179,50 @@ _CATEGORIES = (
     # (category, test on (op_name, function)); the first that matches wins.
     ("augmentation: blur", lambda op, fn: fn == "gaussian_blur"),
     ("augmentation: warp_image", lambda op, fn: fn in ("warp_image", "_pixel_grid")),
-    ("augmentation: other", lambda op, fn: fn in ("photometric_augment", "draw", "make_branches")
-     or "sample_homography" in fn),
+    (
+        "augmentation: other",
+        lambda op, fn: (
+            fn in ("photometric_augment", "draw", "make_branches") or "sample_homography" in fn
+        ),
+    ),
     ("conv backward", lambda op, fn: _is_conv(op, fn) and "transpose(" in op),
     ("conv forward", _is_conv),
     ("batchnorm", lambda op, fn: "BatchNorm" in op),
     ("leaky_relu", lambda op, fn: "leaky_relu" in op),
-    ("max pool", lambda op, fn: fn in ("max_pool_2x2", "_quadrants", "_max_pool_forward",
-                                       "_max_pool_backward") or "reduce_window" in op),
-    ("descriptor sampling", lambda op, fn: fn.startswith("bilinear_sample")
-     or fn == "l2_normalize"),
-    ("losses", lambda op, fn: fn in (
-        "usp_loss", "uniform_loss", "descriptor_loss", "decorrelation_loss", "pair_loss",
-        "total_loss", "find_correspondences", "pairwise_distances", "safe_sqrt",
-        "correspondence_matrix", "warp_points", "invert_homography", "points_inside",
-        "_normalise") or "pair_loss" in op),
+    (
+        "max pool",
+        lambda op, fn: (
+            fn in ("max_pool_2x2", "_quadrants", "_max_pool_forward", "_max_pool_backward")
+            or "reduce_window" in op
+        ),
+    ),
+    (
+        "descriptor sampling",
+        lambda op, fn: fn.startswith("bilinear_sample") or fn == "l2_normalize",
+    ),
+    (
+        "losses",
+        lambda op, fn: (
+            fn
+            in (
+                "usp_loss",
+                "uniform_loss",
+                "descriptor_loss",
+                "decorrelation_loss",
+                "pair_loss",
+                "total_loss",
+                "find_correspondences",
+                "pairwise_distances",
+                "safe_sqrt",
+                "correspondence_matrix",
+                "warp_points",
+                "invert_homography",
+                "points_inside",
+                "_normalise",
+            )
+            or "pair_loss" in op
+        ),
+    ),
     ("optimizer, finiteness check", lambda op, fn: fn.startswith("train_step") or "adam" in op),
 )
 

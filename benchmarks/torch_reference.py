@@ -81,8 +81,9 @@ class TorchUnsuperPoint(nn.Module):
             # "border" repeats the border cells like its clip.
             size = torch.tensor([cells_w, cells_h], dtype=keypoints.dtype)
             grid = (2 * (keypoints + 0.5) / (CELL * size) - 1)[:, None]
-            sampled = F.grid_sample(descriptor_map, grid, mode="bilinear",
-                                    padding_mode="border", align_corners=False)
+            sampled = F.grid_sample(
+                descriptor_map, grid, mode="bilinear", padding_mode="border", align_corners=False
+            )
             descriptors = sampled[:, :, 0].transpose(1, 2)
         else:
             descriptors = descriptor_map.flatten(2).transpose(1, 2)
@@ -96,8 +97,11 @@ def load_flax_variables(model: TorchUnsuperPoint, variables) -> None:
     blocks = [m for m in model.backbone if isinstance(m, ConvBnAct)]
     blocks += [model.score[0], model.position[0], model.descriptor[0]]
     pairs = [(block[0], block[1], f"Conv_{i}", f"BatchNorm_{i}") for i, block in enumerate(blocks)]
-    outputs = [(model.score[1], "score"), (model.position[1], "position"),
-               (model.descriptor[1], "descriptor")]
+    outputs = [
+        (model.score[1], "score"),
+        (model.position[1], "position"),
+        (model.descriptor[1], "descriptor"),
+    ]
 
     def tensor(x):
         return torch.from_numpy(np.array(x, np.float32))
@@ -121,16 +125,20 @@ def load_flax_variables(model: TorchUnsuperPoint, variables) -> None:
 def warp_images(images: torch.Tensor, homographies: torch.Tensor) -> torch.Tensor:
     """Bilinear warp of [B, 3, H, W] by [B, 3, 3] (image -> output), zeros outside."""
     _, _, height, width = images.shape
-    ys, xs = torch.meshgrid(torch.arange(height, dtype=images.dtype),
-                            torch.arange(width, dtype=images.dtype), indexing="ij")
+    ys, xs = torch.meshgrid(
+        torch.arange(height, dtype=images.dtype),
+        torch.arange(width, dtype=images.dtype),
+        indexing="ij",
+    )
     grid = torch.stack([xs, ys, torch.ones_like(xs)], -1).reshape(-1, 3)
     source = grid @ torch.linalg.inv(homographies).transpose(1, 2)  # [B, HW, 3]
     source = source[..., :2] / source[..., 2:]
     # align_corners=True puts -1 and 1 at the centres of the border pixels.
     scale = torch.tensor([width - 1, height - 1], dtype=images.dtype)
     normalised = (2 * source / scale - 1).reshape(-1, height, width, 2)
-    return F.grid_sample(images, normalised, mode="bilinear", padding_mode="zeros",
-                         align_corners=True)
+    return F.grid_sample(
+        images, normalised, mode="bilinear", padding_mode="zeros", align_corners=True
+    )
 
 
 def _gaussian_blur(images: torch.Tensor, sigma: torch.Tensor, radius: int) -> torch.Tensor:
@@ -145,8 +153,9 @@ def _gaussian_blur(images: torch.Tensor, sigma: torch.Tensor, radius: int) -> to
     return x.reshape(batch, channels, height, width)
 
 
-def photometric_augment(images: torch.Tensor, config: PhotometricConfig,
-                        generator: torch.Generator) -> torch.Tensor:
+def photometric_augment(
+    images: torch.Tensor, config: PhotometricConfig, generator: torch.Generator
+) -> torch.Tensor:
     """Brightness, contrast, saturation, blur and noise of [B, 3, H, W], as usp_jax.core.augment."""
     batch = images.shape[0]
 
@@ -181,16 +190,20 @@ def photometric_augment(images: torch.Tensor, config: PhotometricConfig,
 
 def _safe_sqrt(sq: torch.Tensor) -> torch.Tensor:
     positive = sq > 1e-12
-    return torch.where(positive, torch.sqrt(torch.where(positive, sq, torch.ones_like(sq))),
-                       torch.zeros_like(sq))
+    return torch.where(
+        positive, torch.sqrt(torch.where(positive, sq, torch.ones_like(sq))), torch.zeros_like(sq)
+    )
 
 
 def _warp_points(homographies: torch.Tensor, xy: torch.Tensor) -> torch.Tensor:
     projected = xy @ homographies[:, :, :2].transpose(1, 2) + homographies[:, None, :, 2]
     w = projected[..., 2:]
     finite = w.abs() > float(np.finfo(np.float32).eps)
-    return torch.where(finite, projected[..., :2] / torch.where(finite, w, torch.ones_like(w)),
-                       torch.zeros_like(projected[..., :2]))
+    return torch.where(
+        finite,
+        projected[..., :2] / torch.where(finite, w, torch.ones_like(w)),
+        torch.zeros_like(projected[..., :2]),
+    )
 
 
 def _inside(xy: torch.Tensor, height: int, width: int, border: float) -> torch.Tensor:
@@ -212,8 +225,14 @@ def _decorrelation(descriptors: torch.Tensor, mode: str) -> torch.Tensor:
     return (off**2).sum((1, 2)) if mode == "squared" else off.sum((1, 2))
 
 
-def total_loss(pred_a, pred_b, homographies: torch.Tensor, height: int, width: int,
-               config: LossConfig = LossConfig()) -> torch.Tensor:
+def total_loss(
+    pred_a,
+    pred_b,
+    homographies: torch.Tensor,
+    height: int,
+    width: int,
+    config: LossConfig = LossConfig(),
+) -> torch.Tensor:
     """usp_jax.core.losses.total_loss, batched: per-pair eq. 4 averaged over the batch."""
     scores_a, relative_a, keypoints_a, desc_a = pred_a
     scores_b, relative_b, keypoints_b, desc_b = pred_b
@@ -222,11 +241,15 @@ def total_loss(pred_a, pred_b, homographies: torch.Tensor, height: int, width: i
     b_in_a = _warp_points(inverse / inverse[:, 2:3, 2:3], keypoints_b)
     valid_a = _inside(a_in_b, height, width, -0.5)
     valid_b = _inside(b_in_a, height, width, -0.5)
-    sq = ((a_in_b**2).sum(-1)[:, :, None] + (keypoints_b**2).sum(-1)[:, None, :]
-          - 2 * a_in_b @ keypoints_b.transpose(1, 2))
+    sq = (
+        (a_in_b**2).sum(-1)[:, :, None]
+        + (keypoints_b**2).sum(-1)[:, None, :]
+        - 2 * a_in_b @ keypoints_b.transpose(1, 2)
+    )
     distances = _safe_sqrt(sq)
-    search = torch.where(valid_b[:, None, :], distances.detach(),
-                         torch.full_like(distances, np.inf))
+    search = torch.where(
+        valid_b[:, None, :], distances.detach(), torch.full_like(distances, np.inf)
+    )
     nearest = search.argmin(2)
     gathered = torch.gather(keypoints_b, 1, nearest[..., None].expand(-1, -1, 2))
     d = _safe_sqrt(((a_in_b - gathered) ** 2).sum(-1))
@@ -253,12 +276,17 @@ def total_loss(pred_a, pred_b, homographies: torch.Tensor, height: int, width: i
     positive = config.lambda_d * c * torch.clamp(config.margin_positive - sim, min=0.0)
     negative = (1 - c) * torch.clamp(sim - config.margin_negative, min=0.0)
     desc = (mask * (positive + negative)).sum((1, 2))
-    decorr = (_decorrelation(desc_a, config.decorrelation)
-              + _decorrelation(desc_b, config.decorrelation))
-    per_pair = (config.alpha_usp * usp + config.alpha_uni_xy * uni_xy
-                + config.alpha_score_mean * score_mean + config.alpha_uni_score * uni_score
-                + config.alpha_desc * desc
-                + config.alpha_decorr * decorr)
+    decorr = _decorrelation(desc_a, config.decorrelation) + _decorrelation(
+        desc_b, config.decorrelation
+    )
+    per_pair = (
+        config.alpha_usp * usp
+        + config.alpha_uni_xy * uni_xy
+        + config.alpha_score_mean * score_mean
+        + config.alpha_uni_score * uni_score
+        + config.alpha_desc * desc
+        + config.alpha_decorr * decorr
+    )
     return per_pair.mean()
 
 
@@ -279,15 +307,20 @@ class TrainStep:
 
     def branches(self, images: torch.Tensor, homographies: torch.Tensor):
         """images: uint8 [B, H, W, 3] -> (branch A, branch B), float [B, 3, H, W] channels-last."""
-        x = images.permute(0, 3, 1, 2).float().div_(255).contiguous(
-            memory_format=torch.channels_last)
+        x = (
+            images.permute(0, 3, 1, 2)
+            .float()
+            .div_(255)
+            .contiguous(memory_format=torch.channels_last)
+        )
         warped = warp_images(x, homographies)
         images_a = photometric_augment(x, self.config.photometric, self.generator)
         images_b = photometric_augment(warped, self.config.photometric, self.generator)
         return images_a, images_b
 
-    def loss(self, images_a: torch.Tensor, images_b: torch.Tensor,
-             homographies: torch.Tensor) -> torch.Tensor:
+    def loss(
+        self, images_a: torch.Tensor, images_b: torch.Tensor, homographies: torch.Tensor
+    ) -> torch.Tensor:
         batch, _, height, width = images_a.shape
         both = torch.cat([images_a, images_b]).contiguous(memory_format=torch.channels_last)
         pred = self.model(both)

@@ -46,8 +46,15 @@ PACKAGES = ("plasma-workspace-wallpapers", "mate-backgrounds", "opencv-doc")
 # Photographic Plasma wallpapers (DarkestHour and summer_1am are photos with little texture;
 # the rest are rendered art).
 PLASMA_PHOTOS = (
-    "BytheWater", "ColdRipple", "ColorfulCups", "EveningGlow", "FallenLeaf", "Grey", "Kite",
-    "OneStandsOut", "Path",
+    "BytheWater",
+    "ColdRipple",
+    "ColorfulCups",
+    "EveningGlow",
+    "FallenLeaf",
+    "Grey",
+    "Kite",
+    "OneStandsOut",
+    "Path",
 )
 PLASMA_DIR = "usr/share/wallpapers/{}/contents/images/2560x1600.jpg"
 MATE_DIR = "usr/share/backgrounds/mate/nature"
@@ -123,7 +130,9 @@ def download(packages: tuple[str, ...], where: pathlib.Path) -> dict[str, pathli
 
 def deb_origin(deb: pathlib.Path) -> str:
     fields = subprocess.run(
-        ["dpkg-deb", "-f", str(deb), "Package", "Version"], capture_output=True, text=True,
+        ["dpkg-deb", "-f", str(deb), "Package", "Version"],
+        capture_output=True,
+        text=True,
         check=True,
     ).stdout
     info = dict(line.split(": ", 1) for line in fields.strip().splitlines())
@@ -135,7 +144,10 @@ def candidates(root: pathlib.Path, origins: dict[str, str]):
     for name in PLASMA_PHOTOS:
         inner = PLASMA_DIR.format(name)
         yield (
-            f"plasma/{name}", origins["plasma-workspace-wallpapers"], inner, root / inner,
+            f"plasma/{name}",
+            origins["plasma-workspace-wallpapers"],
+            inner,
+            root / inner,
             f"plasma-{name}.jpg",
         )
     for path in sorted((root / MATE_DIR).glob("*.jpg")):
@@ -149,8 +161,11 @@ def candidates(root: pathlib.Path, origins: dict[str, str]):
         installed = importlib.metadata.distribution(distribution)
         inner = path.relative_to(installed.locate_file("")).as_posix()
         yield (
-            f"{distribution}/{path.stem}", f"pypi:{distribution}=={installed.version}", inner,
-            path, f"{distribution}-{path.name}",
+            f"{distribution}/{path.stem}",
+            f"pypi:{distribution}=={installed.version}",
+            inner,
+            path,
+            f"{distribution}-{path.name}",
         )
 
 
@@ -192,8 +207,13 @@ def build(out: pathlib.Path, debs: dict[str, pathlib.Path], work: pathlib.Path) 
     def add(split, scene, origin, inner, target, shape) -> None:
         entries.append(
             {
-                "file": target.relative_to(out).as_posix(), "split": split, "scene": scene,
-                "origin": origin, "origin_path": inner, "width": shape[1], "height": shape[0],
+                "file": target.relative_to(out).as_posix(),
+                "split": split,
+                "scene": scene,
+                "origin": origin,
+                "origin_path": inner,
+                "width": shape[1],
+                "height": shape[0],
             }
         )
 
@@ -210,15 +230,26 @@ def build(out: pathlib.Path, debs: dict[str, pathlib.Path], work: pathlib.Path) 
     for number, frame in video_frames(root / video, VIDEO_STRIDE):
         target = out / "train" / f"opencv-vtest-frame{number:04d}.png"
         cv2.imwrite(str(target), frame)
-        add("train", "opencv/vtest", origins["opencv-doc"], f"{video}#frame={number}", target,
-            frame.shape)
+        add(
+            "train",
+            "opencv/vtest",
+            origins["opencv-doc"],
+            f"{video}#frame={number}",
+            target,
+            frame.shape,
+        )
 
     for name in GRAF_FILES:
         inner = f"{OPENCV_DIR}/{name}"
         shutil.copyfile(root / inner, out / "graf" / name)
         entries.append(
-            {"file": f"graf/{name}", "split": "graf", "scene": "opencv/graf",
-             "origin": origins["opencv-doc"], "origin_path": inner}
+            {
+                "file": f"graf/{name}",
+                "split": "graf",
+                "scene": "opencv/graf",
+                "origin": origins["opencv-doc"],
+                "origin_path": inner,
+            }
         )
 
     train_scenes = {e["scene"] for e in entries if e["split"] == "train"}
@@ -247,7 +278,8 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--out", type=pathlib.Path, required=True, help="corpus folder to create")
     parser.add_argument(
-        "--debs", type=pathlib.Path,
+        "--debs",
+        type=pathlib.Path,
         help="folder to keep the downloaded .deb files in (and reuse); default: a temporary one",
     )
     parser.add_argument("--overwrite", action="store_true", help="rebuild an existing corpus")

@@ -21,22 +21,27 @@ import argparse
 import json
 import pathlib
 
-
 from usp_jax.evaluation.analysis import by_rotation, by_view, markdown_by_view
 from usp_jax.evaluation.statistics import MODEL, paired_change
+
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("results", help="JSON from usp-jax evaluate --json")
     parser.add_argument("--against", help="a second evaluation of the same pairs (a new model)")
-    parser.add_argument("--rotation", metavar="PAIRS",
-                        help="also break the viewpoint pairs down by in-plane rotation, reading "
-                             "their homographies from PAIRS, the evaluated folder")
+    parser.add_argument(
+        "--rotation",
+        metavar="PAIRS",
+        help="also break the viewpoint pairs down by in-plane rotation, reading "
+        "their homographies from PAIRS, the evaluated folder",
+    )
     parser.add_argument("--rounds", type=int, default=2000, help="bootstrap resamples")
     args = parser.parse_args()
     try:
         rows = json.loads(pathlib.Path(args.results).read_text())["pairs"]
-        new_rows = json.loads(pathlib.Path(args.against).read_text())["pairs"] if args.against else None
+        new_rows = (
+            json.loads(pathlib.Path(args.against).read_text())["pairs"] if args.against else None
+        )
     except (OSError, ValueError, KeyError) as error:
         parser.error(f"cannot read the evaluation JSON: {error}")
     print(markdown_by_view(by_view(rows)))

@@ -22,8 +22,8 @@ import cv2
 import jax.numpy as jnp
 import numpy as np
 
-from usp_jax.inference import load_weights
 from usp_jax.core.model import CELL, UnsuperPoint
+from usp_jax.inference import load_weights
 
 SIZES = ((128, 160), (240, 320), (480, 640))
 SHIFTS = (8, 16, 32)
@@ -60,10 +60,11 @@ def translation_accuracy(model, variables, images, shift: int, margin: int = 2) 
     hits = []
     for image in images:
         image = cv2.resize(image, (384, 288), interpolation=cv2.INTER_AREA)
-        a, b = descriptors(model, variables, [image[:240, :320], image[shift:240 + shift,
-                                                                        shift:320 + shift]])
-        a = a[margin + cells:-margin, margin + cells:-margin].reshape(-1, a.shape[-1])
-        b = b[margin:-margin - cells, margin:-margin - cells].reshape(-1, b.shape[-1])
+        a, b = descriptors(
+            model, variables, [image[:240, :320], image[shift : 240 + shift, shift : 320 + shift]]
+        )
+        a = a[margin + cells : -margin, margin + cells : -margin].reshape(-1, a.shape[-1])
+        b = b[margin : -margin - cells, margin : -margin - cells].reshape(-1, b.shape[-1])
         hits.append(np.mean(np.argmax(a @ b.T, axis=1) == np.arange(len(a))))
     return float(np.mean(hits))
 
@@ -80,9 +81,16 @@ def main() -> None:
     for path in args.weights:
         config, variables = load_weights(path)
         model = UnsuperPoint(config)
-        spread = [mean_cosine(descriptors(model, variables, [
-            cv2.resize(image, (w, h), interpolation=cv2.INTER_AREA) for image in images]))
-            for h, w in SIZES]
+        spread = [
+            mean_cosine(
+                descriptors(
+                    model,
+                    variables,
+                    [cv2.resize(image, (w, h), interpolation=cv2.INTER_AREA) for image in images],
+                )
+            )
+            for h, w in SIZES
+        ]
         moved = [translation_accuracy(model, variables, images, shift) for shift in SHIFTS]
         print(f"{str(path):32s} " + " ".join(f"{v:15.3f}" for v in spread + moved))
 

@@ -41,24 +41,28 @@ def _fast(overrides: list[str]) -> config_lib.Config:
 
 
 def get_config() -> config_lib.Config:
-    return _fast([
-        "seed=23",
-        "data.height=128",
-        "data.width=160",
-        "data.scale_range=(0.25, 0.5)",
-        "loss.lambda_d=62.5",
-        "loss.alpha_desc=0.004",
-        "num_steps=18000",
-        "optim.warmup_steps=300",
-        "optim.decay_steps=17700",
-    ])
+    return _fast(
+        [
+            "seed=23",
+            "data.height=128",
+            "data.width=160",
+            "data.scale_range=(0.25, 0.5)",
+            "loss.lambda_d=62.5",
+            "loss.alpha_desc=0.004",
+            "num_steps=18000",
+            "optim.warmup_steps=300",
+            "optim.decay_steps=17700",
+        ]
+    )
 
 
 def finetune() -> config_lib.Config:
-    return _fast([
-        "seed=24",
-        "optim.learning_rate=3e-4",
-        "optim.warmup_steps=100",
-        "num_steps=1500",
-        "optim.decay_steps=1400",
-    ])
+    return _fast(
+        [
+            "seed=24",
+            "optim.learning_rate=3e-4",
+            "optim.warmup_steps=100",
+            "num_steps=1500",
+            "optim.decay_steps=1400",
+        ]
+    )

@@ -24,14 +24,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from usp_jax.training import crops
-from usp_jax.training import metrics as metrics_lib
-from usp_jax.training import checkpoint
-from usp_jax.training import data
-from usp_jax.core import geometry
-from usp_jax.core import losses
-from usp_jax.evaluation import plotting
+from usp_jax.core import geometry, losses
 from usp_jax.core.model import UnsuperPoint
+from usp_jax.evaluation import plotting
+from usp_jax.training import checkpoint, crops, data
+from usp_jax.training import metrics as metrics_lib
 
 
 def pair_statistics(checkpoint_dir, photos, height=240, width=320, seed=0):
@@ -68,29 +65,53 @@ def main() -> None:
     parser.add_argument("--photos", required=True)
     parser.add_argument("--out", required=True)
     parser.add_argument("--without-uniform", help="checkpoint of a run with loss.alpha_uni_xy=0")
-    parser.add_argument("--earlier-stages", nargs="*", default=[], metavar="WORKDIR",
-                        help="workdirs of the stages before --checkpoint, in training order")
+    parser.add_argument(
+        "--earlier-stages",
+        nargs="*",
+        default=[],
+        metavar="WORKDIR",
+        help="workdirs of the stages before --checkpoint, in training order",
+    )
     args = parser.parse_args()
     out = pathlib.Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     d, scores, rel_x = pair_statistics(args.checkpoint, args.photos)
-    plotting.plot_histograms({"point-pairs": d}, out / "fig4a_pair_distances.png", bins=40,
-                             xlabel="d_k (px)", title="Point-pair distances d_k (paper Fig. 4a)")
-    plotting.plot_histograms({"all points": scores}, out / "fig4b_scores.png", bins=40,
-                             xlabel="score", title="Scores (paper Fig. 4b)")
+    plotting.plot_histograms(
+        {"point-pairs": d},
+        out / "fig4a_pair_distances.png",
+        bins=40,
+        xlabel="d_k (px)",
+        title="Point-pair distances d_k (paper Fig. 4a)",
+    )
+    plotting.plot_histograms(
+        {"all points": scores},
+        out / "fig4b_scores.png",
+        bins=40,
+        xlabel="score",
+        title="Scores (paper Fig. 4b)",
+    )
     series = {"with uniform loss": 8 * rel_x}
     if args.without_uniform:
         series["without uniform loss"] = 8 * pair_statistics(args.without_uniform, args.photos)[2]
-    plotting.plot_histograms(series, out / "fig5_x_in_cell.png", bins=np.linspace(0, 8, 33),
-                             xlabel="x inside the 8 px cell", density=True,
-                             title="x-coordinate predictions (paper Fig. 5)")
-    stages = [metrics_lib.read_metrics(workdir) for workdir in [*args.earlier_stages, args.checkpoint]]
+    plotting.plot_histograms(
+        series,
+        out / "fig5_x_in_cell.png",
+        bins=np.linspace(0, 8, 33),
+        xlabel="x inside the 8 px cell",
+        density=True,
+        title="x-coordinate predictions (paper Fig. 5)",
+    )
+    stages = [
+        metrics_lib.read_metrics(workdir) for workdir in [*args.earlier_stages, args.checkpoint]
+    ]
     if stages[-1]:  # a training workdir: also its logged statistics over the run
         rows, starts = metrics_lib.chain_stages(stages)
         plotting.plot_training_curves(rows, out / "training_curves.png", stage_starts=starts)
-    print(f"median d_k {np.median(d):.2f} px over {d.size} pairs; score mean {scores.mean():.3f} "
-          f"std {scores.std():.3f}; share of x within 0.4 px of a cell edge "
-          f"{np.mean((rel_x < 0.05) | (rel_x > 0.95)):.3f}")
+    print(
+        f"median d_k {np.median(d):.2f} px over {d.size} pairs; score mean {scores.mean():.3f} "
+        f"std {scores.std():.3f}; share of x within 0.4 px of a cell edge "
+        f"{np.mean((rel_x < 0.05) | (rel_x > 0.95)):.3f}"
+    )
     print(f"wrote {out}")
 
 

@@ -18,7 +18,6 @@ from __future__ import annotations
 
 import argparse
 
-
 from usp_jax import evaluation
 from usp_jax.evaluation.analysis import inlier_residuals_by_view, markdown_inlier_residuals
 from usp_jax.inference import Detector
@@ -27,14 +26,16 @@ from usp_jax.inference import Detector
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--pairs", required=True, help="HPatches-layout folder")
-    parser.add_argument("--checkpoint",
-                        help="training workdir or .npz weights file (default: shipped weights)")
+    parser.add_argument(
+        "--checkpoint", help="training workdir or .npz weights file (default: shipped weights)"
+    )
     parser.add_argument("--res", default="240x320", help="HxW")
     parser.add_argument("--top", type=int, default=300)
     parser.add_argument("--nms", type=float, default=4.0)
     parser.add_argument("--baselines", default="brisk,sift")
-    parser.add_argument("--upsample", type=int, default=1,
-                        help="run the model on images enlarged this many times")
+    parser.add_argument(
+        "--upsample", type=int, default=1, help="run the model on images enlarged this many times"
+    )
     args = parser.parse_args()
     height, width = (int(v) for v in args.res.split("x"))
     try:
@@ -49,9 +50,11 @@ def main() -> None:
     except (FileNotFoundError, NotADirectoryError, ValueError) as error:
         parser.error(str(error))
     enlarged = f", model on {args.upsample}x enlarged images" if args.upsample > 1 else ""
-    print(f"{args.pairs} viewpoint pairs at {args.res}, top {args.top}, NMS {args.nms:g}{enlarged}; "
-          "each cell: inliers / RMS error (px) / share > 2 px / hull's share of image 1 / "
-          "median corner error (px)")
+    print(
+        f"{args.pairs} viewpoint pairs at {args.res}, top {args.top}, NMS {args.nms:g}{enlarged}; "
+        "each cell: inliers / RMS error (px) / share > 2 px / hull's share of image 1 / "
+        "median corner error (px)"
+    )
     print(markdown_inlier_residuals(table))
 
 

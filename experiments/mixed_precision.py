@@ -68,16 +68,20 @@ def curves(workdir: str | pathlib.Path) -> dict[str, np.ndarray]:
 
     rows = {row["step"]: row for row in read_metrics(workdir)}
     steps = sorted(rows)
-    return {name: np.array([rows[s].get(name, np.nan) for s in steps], float)
-            for name in ("step", *TERMS)}
+    return {
+        name: np.array([rows[s].get(name, np.nan) for s in steps], float)
+        for name in ("step", *TERMS)
+    }
 
 
 def summary(runs: dict[str, dict[str, np.ndarray]]) -> str:
     """One line per run and term: mean of the first and of the last ``WINDOW`` steps."""
     lines = []
     for name, run in runs.items():
-        parts = [f"{term} {np.mean(run[term][:WINDOW]):.4g} -> {np.mean(run[term][-WINDOW:]):.4g}"
-                 for term in TERMS]
+        parts = [
+            f"{term} {np.mean(run[term][:WINDOW]):.4g} -> {np.mean(run[term][-WINDOW:]):.4g}"
+            for term in TERMS
+        ]
         lines.append(f"{name} ({len(run['step'])} steps): " + ", ".join(parts))
     return "\n".join(lines)
 
@@ -92,7 +96,7 @@ def plot(runs: dict[str, dict[str, np.ndarray]], out: str | pathlib.Path) -> Non
     for axis, term in zip(axes.flat, TERMS):
         for name, run in runs.items():
             values = smooth(run[term])
-            axis.plot(run["step"][len(run["step"]) - len(values):], values, label=name)
+            axis.plot(run["step"][len(run["step"]) - len(values) :], values, label=name)
         axis.set_title(f"{term} (10-step mean)")
         axis.set_xlabel("step")
     axes.flat[0].legend()

@@ -60,13 +60,20 @@ def get_config() -> config_lib.Config:
     )
 
 
-def _restart(base: config_lib.Config, seed: int, rate: float, steps: int, decay: int,
-             warmup: int = 200) -> config_lib.Config:
+def _restart(
+    base: config_lib.Config, seed: int, rate: float, steps: int, decay: int, warmup: int = 200
+) -> config_lib.Config:
     """``base`` restarted from exported weights: a new seed, a warm-up to ``rate``, a cosine."""
-    return config_lib.override(base, [
-        f"seed={seed}", f"optim.learning_rate={rate}", f"optim.warmup_steps={warmup}",
-        f"num_steps={steps}", f"optim.decay_steps={decay}",
-    ])
+    return config_lib.override(
+        base,
+        [
+            f"seed={seed}",
+            f"optim.learning_rate={rate}",
+            f"optim.warmup_steps={warmup}",
+            f"num_steps={steps}",
+            f"optim.decay_steps={decay}",
+        ],
+    )
 
 
 def stage2() -> config_lib.Config:
@@ -91,7 +98,14 @@ def stage7() -> config_lib.Config:
 
 def stage10() -> config_lib.Config:
     """Stage 7 under stronger lighting changes: the shipped weights."""
-    return config_lib.override(stage7(), [
-        "seed=10", "num_steps=1500", "optim.decay_steps=1400", "photometric.gamma=0.5",
-        "photometric.brightness=0.5", "photometric.contrast=0.5",
-    ])
+    return config_lib.override(
+        stage7(),
+        [
+            "seed=10",
+            "num_steps=1500",
+            "optim.decay_steps=1400",
+            "photometric.gamma=0.5",
+            "photometric.brightness=0.5",
+            "photometric.contrast=0.5",
+        ],
+    )

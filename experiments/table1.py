@@ -35,14 +35,14 @@ import functools
 import json
 import pathlib
 
-
-from usp_jax.training import metrics as metrics_lib
 from usp_jax import config as config_lib
 from usp_jax import evaluation
-from usp_jax.training import train
 from usp_jax.evaluation import as_method
 from usp_jax.evaluation.paper_tables import CONFIGS, report, training_stats
 from usp_jax.inference import Detector
+from usp_jax.training import metrics as metrics_lib
+from usp_jax.training import train
+
 
 def config_for(name: str, data_source: str, steps: int) -> config_lib.Config:
     base = config_lib.load(str(pathlib.Path(__file__).with_name("paper_network.py")))

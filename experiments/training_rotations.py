@@ -19,6 +19,7 @@ import numpy as np
 from usp_jax import config as config_lib
 from usp_jax.evaluation.analysis import training_rotations
 
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("configs", nargs="+", help="experiment config files (get_config())")
@@ -32,12 +33,17 @@ def main() -> None:
         except (OSError, ValueError, AttributeError) as error:
             parser.error(f"cannot load {path}: {error}")
         window = cfg.data.example_shape[:2] if cfg.data.context_window else None
-        size = np.abs(training_rotations(cfg.homography, cfg.data.height, cfg.data.width, args.draws,
-                                window=window))
-        print(f"{path} ({cfg.data.height}x{cfg.data.width}, patch {cfg.homography.patch_ratio:g}, "
-              f"{args.draws} draws): |rotation| median {np.median(size):.1f} deg, 90th percentile "
-              f"{np.percentile(size, 90):.1f}; >= 20 deg {np.mean(size >= 20):.1%}, "
-              f">= 30 deg {np.mean(size >= 30):.1%}, >= 90 deg {np.mean(size >= 90):.1%}")
+        size = np.abs(
+            training_rotations(
+                cfg.homography, cfg.data.height, cfg.data.width, args.draws, window=window
+            )
+        )
+        print(
+            f"{path} ({cfg.data.height}x{cfg.data.width}, patch {cfg.homography.patch_ratio:g}, "
+            f"{args.draws} draws): |rotation| median {np.median(size):.1f} deg, 90th percentile "
+            f"{np.percentile(size, 90):.1f}; >= 20 deg {np.mean(size >= 20):.1%}, "
+            f">= 30 deg {np.mean(size >= 30):.1%}, >= 90 deg {np.mean(size >= 90):.1%}"
+        )
 
 
 if __name__ == "__main__":

@@ -17,12 +17,16 @@ def image():
 
 def augment_batch(config, images, seed=0):
     keys = jax.random.split(jax.random.PRNGKey(seed), len(images))
-    return np.asarray(jax.jit(jax.vmap(lambda key, x: photometric_augment(key, x, config)))(keys, images))
+    return np.asarray(
+        jax.jit(jax.vmap(lambda key, x: photometric_augment(key, x, config)))(keys, images)
+    )
 
 
 def test_zero_magnitudes_are_identity():
     images = np.stack([image()] * 4)
-    np.testing.assert_array_equal(augment_batch(PhotometricConfig(**ZERO, **ALWAYS), images), images)
+    np.testing.assert_array_equal(
+        augment_batch(PhotometricConfig(**ZERO, **ALWAYS), images), images
+    )
 
 
 def test_output_in_unit_range_and_changes_image():
@@ -32,7 +36,9 @@ def test_output_in_unit_range_and_changes_image():
     assert augmented.shape == images.shape and augmented.dtype == np.float32
     assert augmented.min() >= 0.0 and augmented.max() <= 1.0
     assert np.all(np.abs(augmented - images).mean(axis=(1, 2, 3))[1:] > 1e-3)
-    assert len(np.unique(augmented[1:].mean(axis=(1, 2, 3)))) == 5  # each key draws its own magnitudes
+    assert (
+        len(np.unique(augmented[1:].mean(axis=(1, 2, 3)))) == 5
+    )  # each key draws its own magnitudes
 
 
 def test_brightness_alone_scales_every_pixel_by_one_factor():
@@ -61,7 +67,9 @@ def test_adding_gamma_leaves_the_other_operations_draws_unchanged():
     # the runs trained before gamma existed stay reproducible.
     images = np.stack([image()] * 4)
     without = augment_batch(PhotometricConfig(**ALWAYS), images, seed=3)
-    never_applied = augment_batch(PhotometricConfig(**ALWAYS, gamma=1.0, p_gamma=0.0), images, seed=3)
+    never_applied = augment_batch(
+        PhotometricConfig(**ALWAYS, gamma=1.0, p_gamma=0.0), images, seed=3
+    )
     np.testing.assert_array_equal(never_applied, without)
     applied = augment_batch(PhotometricConfig(**ALWAYS, gamma=1.0, p_gamma=1.0), images, seed=3)
     assert np.abs(applied - without).mean() > 1e-3
@@ -72,7 +80,9 @@ def test_gaussian_blur_matches_cv2():
     for sigma in (0.5, 1.3):
         radius = int(np.ceil(3 * sigma))
         expected = cv2.GaussianBlur(source, (2 * radius + 1, 2 * radius + 1), sigma)
-        np.testing.assert_allclose(gaussian_blur(source, np.float32(sigma), radius), expected, atol=1e-5)
+        np.testing.assert_allclose(
+            gaussian_blur(source, np.float32(sigma), radius), expected, atol=1e-5
+        )
     np.testing.assert_array_equal(gaussian_blur(source, np.float32(0.0), 3), source)
 
 
@@ -88,4 +98,7 @@ def test_config_rejects_out_of_range_values():
         PhotometricConfig(p_noise=2.0)
     with pytest.raises(ValueError, match="gamma"):
         PhotometricConfig(gamma=-0.5)
-    assert PhotometricConfig(blur_sigma=1.0).blur_radius == 3 and PhotometricConfig(**ZERO).blur_radius == 0
+    assert (
+        PhotometricConfig(blur_sigma=1.0).blur_radius == 3
+        and PhotometricConfig(**ZERO).blur_radius == 0
+    )

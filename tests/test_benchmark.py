@@ -3,9 +3,14 @@ import json
 import jax
 import pytest
 
-from usp_jax.evaluation.benchmark import OPENCV_DETECTORS, benchmark, format_benchmark, protocol_top_n
-from usp_jax.inference import Detector
 from usp_jax.core.model import ModelConfig, fast_config, init_variables
+from usp_jax.evaluation.benchmark import (
+    OPENCV_DETECTORS,
+    benchmark,
+    format_benchmark,
+    protocol_top_n,
+)
+from usp_jax.inference import Detector
 
 SMALL = ModelConfig(
     backbone_channels=(8, 8, 8, 8, 16, 16, 16, 16), head_channels=16, descriptor_dim=16
@@ -61,18 +66,34 @@ def test_format_benchmark_is_the_papers_table_layout(tiny_run):
 
 def test_an_upsampled_detector_is_recorded_and_named_in_the_table(detector):
     upsampled = Detector(detector.variables, SMALL, upsample=2)
-    result = benchmark(upsampled, resolutions=((32, 48),), batch_sizes=(1,), repeats=1,
-                       warmup=0, include_opencv=False)
+    result = benchmark(
+        upsampled,
+        resolutions=((32, 48),),
+        batch_sizes=(1,),
+        repeats=1,
+        warmup=0,
+        include_opencv=False,
+    )
     assert result["upsample"] == 2
     assert "UnsuperPoint on 2x enlarged images" in format_benchmark(result)
 
 
 def test_named_detectors_are_timed_side_by_side_in_one_table(detector):
-    fast_config_ = fast_config(backbone_channels=(4, 8, 8, 16), head_channels=8,
-                         descriptor_head_channels=8, descriptor_dim=8)
+    fast_config_ = fast_config(
+        backbone_channels=(4, 8, 8, 16),
+        head_channels=8,
+        descriptor_head_channels=8,
+        descriptor_dim=8,
+    )
     fast = Detector(init_variables(jax.random.PRNGKey(0), fast_config_), fast_config_)
-    result = benchmark({"paper": detector, "fast": fast}, resolutions=((32, 48),),
-                       batch_sizes=(1,), repeats=1, warmup=0, include_opencv=False)
+    result = benchmark(
+        {"paper": detector, "fast": fast},
+        resolutions=((32, 48),),
+        batch_sizes=(1,),
+        repeats=1,
+        warmup=0,
+        include_opencv=False,
+    )
     assert [r["method"] for r in result["rows"]] == ["UnsuperPoint paper", "UnsuperPoint fast"]
     assert result["models"]["UnsuperPoint fast"]["backbone"] == "fast"
     labels = [line.split("|")[0].strip() for line in format_benchmark(result).splitlines()]

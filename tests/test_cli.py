@@ -8,9 +8,16 @@ import pytest
 from usp_jax import evaluation
 from usp_jax.cli import main, parse_args
 
-TINY = ["model.backbone_channels=(8, 8, 8, 8, 16, 16, 16, 16)", "model.head_channels=16",
-        "model.descriptor_dim=16", "data.height=32", "data.width=48", "batch_size=2",
-        "checkpoint_every=2", "log_every=1"]
+TINY = [
+    "model.backbone_channels=(8, 8, 8, 8, 16, 16, 16, 16)",
+    "model.head_channels=16",
+    "model.descriptor_dim=16",
+    "data.height=32",
+    "data.width=48",
+    "batch_size=2",
+    "checkpoint_every=2",
+    "log_every=1",
+]
 
 
 @pytest.fixture(scope="module")
@@ -19,16 +26,45 @@ def pairs_dir(tmp_path_factory, photo):
     images = root / "photos"
     images.mkdir()
     cv2.imwrite(str(images / "astronaut.png"), cv2.cvtColor(photo, cv2.COLOR_RGB2BGR))
-    assert main(["make-pairs", "--images", str(images), "--out", str(root / "pairs"),
-                 "--size", "120x160", "--no-progress"]) == 0
+    assert (
+        main(
+            [
+                "make-pairs",
+                "--images",
+                str(images),
+                "--out",
+                str(root / "pairs"),
+                "--size",
+                "120x160",
+                "--no-progress",
+            ]
+        )
+        == 0
+    )
     return root / "pairs"
 
 
 @pytest.fixture(scope="module")
 def workdir(tmp_path_factory):
     work = tmp_path_factory.mktemp("run")
-    assert main(["train", "--data", "sample", "--workdir", str(work), "--config", "cpu",
-                 "--steps", "2", "--no-progress", *TINY]) == 0
+    assert (
+        main(
+            [
+                "train",
+                "--data",
+                "sample",
+                "--workdir",
+                str(work),
+                "--config",
+                "cpu",
+                "--steps",
+                "2",
+                "--no-progress",
+                *TINY,
+            ]
+        )
+        == 0
+    )
     return work
 
 
@@ -44,28 +80,45 @@ def test_make_pairs_rotation_flags_turn_the_viewpoint_pairs(photo, tmp_path):
     images.mkdir()
     small = cv2.resize(photo, (160, 160), interpolation=cv2.INTER_AREA)
     cv2.imwrite(str(images / "astronaut.png"), cv2.cvtColor(small, cv2.COLOR_RGB2BGR))
-    common = ["make-pairs", "--images", str(images), "--size", "60x80", "--views", "3", "--no-progress"]
+    common = [
+        "make-pairs",
+        "--images",
+        str(images),
+        "--size",
+        "60x80",
+        "--views",
+        "3",
+        "--no-progress",
+    ]
     assert main([*common, "--out", str(tmp_path / "listed"), "--rotation-angles", "180", "90"]) == 0
     assert main([*common, "--out", str(tmp_path / "drawn"), "--rotation", "180"]) == 0
-    for name, options in (("listed", dict(rotation_angles=[180, 90])), ("drawn", dict(rotation=180))):
+    for name, options in (
+        ("listed", dict(rotation_angles=[180, 90])),
+        ("drawn", dict(rotation=180)),
+    ):
         turns = pair_rotations(0, 3, **options)
         for k, turn in zip((2, 3), turns):
             homography = np.loadtxt(tmp_path / name / "v_astronaut" / f"H_1_{k}")
             # The rotation of H's Jacobian at the centre, with cv2.getRotationMatrix2D's sign.
             centre = np.array([39.5, 29.5])
             moved = cv2.perspectiveTransform(
-                np.array([[centre, centre + [0.01, 0], centre + [0, 0.01]]]), homography)[0]
+                np.array([[centre, centre + [0.01, 0], centre + [0, 0.01]]]), homography
+            )[0]
             jacobian = np.stack([moved[1] - moved[0], moved[2] - moved[0]], axis=1) / 0.01
-            angle = -np.degrees(np.arctan2(jacobian[1, 0] - jacobian[0, 1],
-                                           jacobian[0, 0] + jacobian[1, 1]))
+            angle = -np.degrees(
+                np.arctan2(jacobian[1, 0] - jacobian[0, 1], jacobian[0, 0] + jacobian[1, 1])
+            )
             assert abs((angle - turn + 180) % 360 - 180) < 40  # the view's own turn and keystone
     assert sorted(pair_rotations(0, 3, rotation_angles=[180, 90])) == [90, 180]
 
 
-@pytest.mark.parametrize("argv, message", [
-    (["--rotation", "90", "--rotation-angles", "0", "90"], "not allowed with"),
-    (["--rotation", "ninety"], "invalid float"),
-])
+@pytest.mark.parametrize(
+    "argv, message",
+    [
+        (["--rotation", "90", "--rotation-angles", "0", "90"], "not allowed with"),
+        (["--rotation", "ninety"], "invalid float"),
+    ],
+)
 def test_make_pairs_rotation_flags_are_parsed_strictly(argv, message, capsys):
     with pytest.raises(SystemExit) as exit_info:
         parse_args(["make-pairs", "--images", "x", "--out", "y", *argv])
@@ -75,9 +128,24 @@ def test_make_pairs_rotation_flags_are_parsed_strictly(argv, message, capsys):
 
 def test_evaluate_baselines_prints_table_and_writes_json(pairs_dir, tmp_path, capsys):
     out = tmp_path / "r.json"
-    assert main(["evaluate", "--hpatches", str(pairs_dir), "--baselines-only", "--baselines",
-                 "sift,orb", "--json", str(out), "--plots", str(tmp_path / "plots"),
-                 "--no-progress"]) == 0
+    assert (
+        main(
+            [
+                "evaluate",
+                "--hpatches",
+                str(pairs_dir),
+                "--baselines-only",
+                "--baselines",
+                "sift,orb",
+                "--json",
+                str(out),
+                "--plots",
+                str(tmp_path / "plots"),
+                "--no-progress",
+            ]
+        )
+        == 0
+    )
     assert "SIFT" in capsys.readouterr().out
     summary = json.loads(out.read_text())["summary"]
     assert {"SIFT", "ORB"} <= set(summary)
@@ -90,47 +158,138 @@ def test_evaluate_baselines_prints_table_and_writes_json(pairs_dir, tmp_path, ca
     ]
 
 
-def test_train_resumes_and_the_checkpoint_detects_and_evaluates(workdir, pairs_dir, tmp_path,
-                                                                  photo, capsys):
-    assert main(["train", "--data", "sample", "--workdir", str(workdir), "--config", "cpu",
-                 "--steps", "4", "--no-progress", *TINY]) == 0
+def test_train_resumes_and_the_checkpoint_detects_and_evaluates(
+    workdir, pairs_dir, tmp_path, photo, capsys
+):
+    assert (
+        main(
+            [
+                "train",
+                "--data",
+                "sample",
+                "--workdir",
+                str(workdir),
+                "--config",
+                "cpu",
+                "--steps",
+                "4",
+                "--no-progress",
+                *TINY,
+            ]
+        )
+        == 0
+    )
     assert "done: step 4" in capsys.readouterr().out
     image = tmp_path / "a.png"
     cv2.imwrite(str(image), photo[:100, :150])
     out = tmp_path / "k.json"
-    assert main(["detect", str(image), "--checkpoint", str(workdir), "--top", "20",
-                 "--json", str(out), "--out", str(tmp_path / "k.png")]) == 0
+    assert (
+        main(
+            [
+                "detect",
+                str(image),
+                "--checkpoint",
+                str(workdir),
+                "--top",
+                "20",
+                "--json",
+                str(out),
+                "--out",
+                str(tmp_path / "k.png"),
+            ]
+        )
+        == 0
+    )
     result = json.loads(out.read_text())
     assert len(result["keypoints"]) == 20 and len(result["descriptors"][0]) == 16
     # With radius-4 NMS no two of the kept points lie within 4 px of each other.
-    assert main(["detect", str(image), "--checkpoint", str(workdir), "--top", "20",
-                 "--nms", "4", "--json", str(out)]) == 0
+    assert (
+        main(
+            [
+                "detect",
+                str(image),
+                "--checkpoint",
+                str(workdir),
+                "--top",
+                "20",
+                "--nms",
+                "4",
+                "--json",
+                str(out),
+            ]
+        )
+        == 0
+    )
     spread = np.asarray(json.loads(out.read_text())["keypoints"])
     gaps = np.linalg.norm(spread[:, None] - spread[None], axis=-1) + 1e9 * np.eye(len(spread))
     assert gaps.min() > 4
     assert (tmp_path / "k.png").stat().st_size > 0
-    assert main(["evaluate", "--hpatches", str(pairs_dir), "--checkpoint", str(workdir),
-                 "--baselines", "orb", "--plots", str(tmp_path / "plots"), "--no-progress"]) == 0
+    assert (
+        main(
+            [
+                "evaluate",
+                "--hpatches",
+                str(pairs_dir),
+                "--checkpoint",
+                str(workdir),
+                "--baselines",
+                "orb",
+                "--plots",
+                str(tmp_path / "plots"),
+                "--no-progress",
+            ]
+        )
+        == 0
+    )
     assert "UnsuperPoint" in capsys.readouterr().out
     assert list((tmp_path / "plots").glob("*_matches.png"))
-    assert main(["evaluate", "--hpatches", str(pairs_dir), "--checkpoint", str(workdir),
-                 "--baselines", "", "--upsample", "2", "--no-progress"]) == 0
+    assert (
+        main(
+            [
+                "evaluate",
+                "--hpatches",
+                str(pairs_dir),
+                "--checkpoint",
+                str(workdir),
+                "--baselines",
+                "",
+                "--upsample",
+                "2",
+                "--no-progress",
+            ]
+        )
+        == 0
+    )
     assert "model on 2x enlarged images" in capsys.readouterr().out
 
 
-def test_match_recovers_a_known_homography_between_a_photo_and_its_warp(photo, tmp_path,
-                                                                         capsys):
+def test_match_recovers_a_known_homography_between_a_photo_and_its_warp(photo, tmp_path, capsys):
     # A 20 degree rotation with some scale and keystone: the shipped weights' matches and RANSAC
     # should land within the protocol's 3 px at the corners.
     truth = cv2.getRotationMatrix2D((256, 256), 20, 0.9)
     truth = np.vstack([truth, [2e-4, -1e-4, 1]])
     first, second = tmp_path / "a.png", tmp_path / "b.jpg"
     cv2.imwrite(str(first), cv2.cvtColor(photo, cv2.COLOR_RGB2BGR))
-    cv2.imwrite(str(second), cv2.warpPerspective(cv2.cvtColor(photo, cv2.COLOR_RGB2BGR), truth,
-                                                 (512, 512)))
+    cv2.imwrite(
+        str(second), cv2.warpPerspective(cv2.cvtColor(photo, cv2.COLOR_RGB2BGR), truth, (512, 512))
+    )
     out = tmp_path / "m.json"
-    assert main(["match", str(first), str(second), "--top", "500", "--json", str(out),
-                 "--out", str(tmp_path / "m.png")]) == 0
+    assert (
+        main(
+            [
+                "match",
+                str(first),
+                str(second),
+                "--top",
+                "500",
+                "--json",
+                str(out),
+                "--out",
+                str(tmp_path / "m.png"),
+            ]
+        )
+        == 0
+    )
     printed = capsys.readouterr().out
     assert "RANSAC inliers" in printed and "homography image1 -> image2" in printed
     result = json.loads(out.read_text())
@@ -144,7 +303,10 @@ def test_match_recovers_a_known_homography_between_a_photo_and_its_warp(photo, t
     "argv, message",
     [
         (["train", "--data", "{tmp}/missing", "--workdir", "{tmp}/w", "--steps", "1"], "missing"),
-        (["train", "--data", "sample", "--workdir", "{tmp}/w", "loss.nope=1"], "unknown config key"),
+        (
+            ["train", "--data", "sample", "--workdir", "{tmp}/w", "loss.nope=1"],
+            "unknown config key",
+        ),
         (["train", "--data", "sample", "--workdir", "{tmp}/w", "batch_size=five"], "batch_size"),
         (["evaluate", "--hpatches", "{tmp}/nothing", "--baselines-only"], "nothing"),
         (["detect", "{tmp}/absent.png", "--checkpoint", "{tmp}/none"], "none"),
@@ -165,13 +327,30 @@ def test_user_errors_are_one_line_with_exit_status_2(argv, message, tmp_path, ca
     assert len(err) == 1 and message in err[0] and err[0].startswith("usp-jax")
 
 
-def test_export_writes_weights_and_an_artifact_that_load_without_the_model(workdir, tmp_path,
-                                                                           photo):
+def test_export_writes_weights_and_an_artifact_that_load_without_the_model(
+    workdir, tmp_path, photo
+):
     from usp_jax import inference
 
     weights, artifact = tmp_path / "w.npz", tmp_path / "detector.bin"
-    assert main(["export", "--checkpoint", str(workdir), "--save-weights", str(weights),
-                 "--artifact", str(artifact), "--res", "64x96", "--top", "10"]) == 0
+    assert (
+        main(
+            [
+                "export",
+                "--checkpoint",
+                str(workdir),
+                "--save-weights",
+                str(weights),
+                "--artifact",
+                str(artifact),
+                "--res",
+                "64x96",
+                "--top",
+                "10",
+            ]
+        )
+        == 0
+    )
     config, variables = inference.load_weights(weights)
     assert config.descriptor_dim == 16 and weights.stat().st_size > 0
     image = photo[:64, :96]
@@ -181,16 +360,31 @@ def test_export_writes_weights_and_an_artifact_that_load_without_the_model(workd
     # The exported weights file is itself a --checkpoint.
     image_file, out = tmp_path / "a.png", tmp_path / "k.json"
     cv2.imwrite(str(image_file), cv2.cvtColor(image, cv2.COLOR_RGB2BGR))
-    assert main(["detect", str(image_file), "--checkpoint", str(weights), "--top", "10",
-                 "--json", str(out)]) == 0
+    assert (
+        main(
+            [
+                "detect",
+                str(image_file),
+                "--checkpoint",
+                str(weights),
+                "--top",
+                "10",
+                "--json",
+                str(out),
+            ]
+        )
+        == 0
+    )
     from_file = inference.Detector(variables, config).detect(image, top_n=10)
-    np.testing.assert_allclose(json.loads(out.read_text())["keypoints"], from_file.keypoints,
-                               atol=1e-5)
+    np.testing.assert_allclose(
+        json.loads(out.read_text())["keypoints"], from_file.keypoints, atol=1e-5
+    )
 
 
 def test_train_overrides_may_sit_between_options_in_the_order_given():
-    args = parse_args(["train", "seed=1", "--workdir", "w", "data.height=64", "--steps", "9",
-                       "data.width=96"])
+    args = parse_args(
+        ["train", "seed=1", "--workdir", "w", "data.height=64", "--steps", "9", "data.width=96"]
+    )
     assert args.overrides == ["seed=1", "data.height=64", "data.width=96"]
     assert (args.workdir, args.steps) == ("w", 9)
 
@@ -203,8 +397,13 @@ def test_upsample_below_one_or_not_an_integer_is_a_parser_error(value, capsys):
     assert "is not a positive integer" in capsys.readouterr().err.strip().splitlines()[-1]
 
 
-@pytest.mark.parametrize("argv", [["train", "--workdir", "w", "seed=1", "--stesp", "9"],
-                                  ["evaluate", "--hpatches", "x", "seed=1"]])
+@pytest.mark.parametrize(
+    "argv",
+    [
+        ["train", "--workdir", "w", "seed=1", "--stesp", "9"],
+        ["evaluate", "--hpatches", "x", "seed=1"],
+    ],
+)
 def test_a_misspelt_option_or_an_override_outside_train_is_a_parser_error(argv, capsys):
     with pytest.raises(SystemExit) as exit_info:
         parse_args(argv)
@@ -239,8 +438,16 @@ def test_demo_runs_offline_on_the_shipped_weights_and_writes_its_pngs(tmp_path, 
     assert len(list(tmp_path.glob("UnsuperPoint_v_*_matches.png"))) == 1
 
 
-@pytest.mark.parametrize("command", [["detect", "a.png"], ["match", "a.png", "b.png"],
-                                     ["evaluate", "--hpatches", "p"], ["benchmark"], ["export"]])
+@pytest.mark.parametrize(
+    "command",
+    [
+        ["detect", "a.png"],
+        ["match", "a.png", "b.png"],
+        ["evaluate", "--hpatches", "p"],
+        ["benchmark"],
+        ["export"],
+    ],
+)
 def test_weights_name_and_checkpoint_exclude_each_other(command, capsys):
     with pytest.raises(SystemExit) as exit_info:
         parse_args([*command, "--weights", "fast", "--checkpoint", "runs/x"])
@@ -253,18 +460,25 @@ def test_detect_with_named_weights_uses_that_network(photo, tmp_path, monkeypatc
     from usp_jax.core.model import fast_config, init_variables
 
     # A second named network, as the fast one will ship: random weights suffice to tell them apart.
-    config = fast_config(backbone_channels=(4, 8, 8, 16), head_channels=8,
-                         descriptor_head_channels=8, descriptor_dim=32)
-    inference.save_weights(tmp_path / "fast.npz", init_variables(jax.random.PRNGKey(0), config),
-                           config)
+    config = fast_config(
+        backbone_channels=(4, 8, 8, 16),
+        head_channels=8,
+        descriptor_head_channels=8,
+        descriptor_dim=32,
+    )
+    inference.save_weights(
+        tmp_path / "fast.npz", init_variables(jax.random.PRNGKey(0), config), config
+    )
     monkeypatch.setitem(inference.PRETRAINED, "fast", str(tmp_path / "fast.npz"))
     image = tmp_path / "photo.png"
     cv2.imwrite(str(image), cv2.cvtColor(photo[:240, :320], cv2.COLOR_RGB2BGR))
     out = {}
     for name in ("paper", "fast"):
         out[name] = tmp_path / f"{name}.json"
-        assert main(["detect", str(image), "--weights", name, "--top", "50",
-                     "--json", str(out[name])]) == 0
+        assert (
+            main(["detect", str(image), "--weights", name, "--top", "50", "--json", str(out[name])])
+            == 0
+        )
     dims = {name: len(json.loads(path.read_text())["descriptors"][0]) for name, path in out.items()}
     assert dims == {"paper": 256, "fast": 32}
 
@@ -276,10 +490,26 @@ def test_verbose_flag_shows_usp_jax_info_lines_although_imports_install_a_root_h
     def train(*flags):
         # A fresh interpreter: the package's imports run before the CLI configures logging.
         return subprocess.run(
-            [sys.executable, "-m", "usp_jax", *flags, "train", "--data", "sample", "--workdir",
-             str(tmp_path / "w"), "--config", "cpu", "--steps", str(len(flags) + 1),
-             "--no-progress", *TINY],
-            capture_output=True, text=True, timeout=600,
+            [
+                sys.executable,
+                "-m",
+                "usp_jax",
+                *flags,
+                "train",
+                "--data",
+                "sample",
+                "--workdir",
+                str(tmp_path / "w"),
+                "--config",
+                "cpu",
+                "--steps",
+                str(len(flags) + 1),
+                "--no-progress",
+                *TINY,
+            ],
+            capture_output=True,
+            text=True,
+            timeout=600,
         )
 
     quiet = train()

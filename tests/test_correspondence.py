@@ -2,7 +2,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from usp_jax.core.correspondence import correspondence_matrix, find_correspondences, pairwise_distances
+from usp_jax.core.correspondence import (
+    correspondence_matrix,
+    find_correspondences,
+    pairwise_distances,
+)
 from usp_jax.core.model import relative_to_pixels
 
 H, W = 32, 48
@@ -16,8 +20,9 @@ def grid_points(seed=0):
 def test_distance_matrix_matches_numpy():
     a, b = np.random.default_rng(0).uniform(0, 50, size=(2, 7, 2)).astype(np.float32)
     expected = np.linalg.norm(a[:, None] - b[None], axis=-1)
-    np.testing.assert_allclose(pairwise_distances(jnp.asarray(a), jnp.asarray(b)), expected,
-                               atol=1e-3)
+    np.testing.assert_allclose(
+        pairwise_distances(jnp.asarray(a), jnp.asarray(b)), expected, atol=1e-3
+    )
 
 
 def test_identity_pairs_every_point_with_itself():

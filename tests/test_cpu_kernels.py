@@ -28,8 +28,9 @@ def test_few_output_conv_matches_lax_conv_values_and_gradients():
     grad = jnp.asarray(rng.normal(size=(2, 5, 7, 2)).astype(np.float32))
 
     def reference(x, kernel):
-        return jax.lax.conv_general_dilated(x, kernel, (1, 1), "SAME",
-                                            dimension_numbers=("NHWC", "HWIO", "NHWC"))
+        return jax.lax.conv_general_dilated(
+            x, kernel, (1, 1), "SAME", dimension_numbers=("NHWC", "HWIO", "NHWC")
+        )
 
     out, vjp = jax.vjp(lambda x, k: conv_few_outputs(x, k, (1, 1), "SAME"), x, kernel)
     expected, expected_vjp = jax.vjp(reference, x, kernel)
@@ -42,16 +43,25 @@ def test_the_network_gives_the_same_outputs_and_gradients_on_the_plain_and_the_c
     """Both backbones, in training mode (BatchNorm batch statistics) as in a train step."""
     rng = np.random.default_rng(2)
     images = jnp.asarray(rng.uniform(size=(2, 32, 48, 3)).astype(np.float32))
-    small = ModelConfig(backbone_channels=(8, 8, 8, 8, 16, 16, 16, 16), head_channels=16,
-                        descriptor_dim=16)
-    for config in (small, fast_config(backbone_channels=(4, 8, 8, 16), head_channels=8,
-                                      descriptor_head_channels=8, descriptor_dim=8)):
+    small = ModelConfig(
+        backbone_channels=(8, 8, 8, 8, 16, 16, 16, 16), head_channels=16, descriptor_dim=16
+    )
+    for config in (
+        small,
+        fast_config(
+            backbone_channels=(4, 8, 8, 16),
+            head_channels=8,
+            descriptor_head_channels=8,
+            descriptor_dim=8,
+        ),
+    ):
         variables = init_variables(jax.random.PRNGKey(0), config)
 
         def loss(params, cpu):
             model = UnsuperPoint(config, use_cpu_kernels=cpu)
-            pred, _ = model.apply({**variables, "params": params}, images, train=True,
-                                  mutable=["batch_stats"])
+            pred, _ = model.apply(
+                {**variables, "params": params}, images, train=True, mutable=["batch_stats"]
+            )
             return sum(jnp.sum(x * x) for x in pred), pred
 
         (_, plain), plain_grad = jax.value_and_grad(loss, has_aux=True)(variables["params"], False)

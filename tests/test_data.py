@@ -9,9 +9,8 @@ import numpy as np
 import pytest
 import tensorflow_datasets as tfds
 
-from usp_jax.training import crops
 from usp_jax.inference import images
-from usp_jax.training import data
+from usp_jax.training import crops, data
 
 SMALL = dict(height=48, width=64, num_workers=2, prefetch=2)
 

@@ -14,9 +14,9 @@ import numpy as np
 import pytest
 from test_cli import TINY
 
+from usp_jax.cli import main
 from usp_jax.inference import weights as weights_lib
 from usp_jax.training import metrics as metrics_lib
-from usp_jax.cli import main
 from usp_jax.training.distributed import Launch, check_launch, split_address
 
 # Generous: the processes compile while the rest of the suite runs beside them.
@@ -30,33 +30,60 @@ def free_port() -> int:
 
 
 def train_argv(workdir, steps, *extra) -> list[str]:
-    return [sys.executable, "-m", "usp_jax", "train", "--data", "sample", "--workdir", str(workdir),
-            "--steps", str(steps), "--no-progress", *TINY, *extra]
+    return [
+        sys.executable,
+        "-m",
+        "usp_jax",
+        "train",
+        "--data",
+        "sample",
+        "--workdir",
+        str(workdir),
+        "--steps",
+        str(steps),
+        "--no-progress",
+        *TINY,
+        *extra,
+    ]
 
 
 def start(argv, devices=1) -> subprocess.Popen:
     """``argv`` in a process with ``devices`` CPU devices."""
     env = {
-        **os.environ, "JAX_PLATFORMS": "cpu",
+        **os.environ,
+        "JAX_PLATFORMS": "cpu",
         # LLVM's optimisations take half of the compile time of a train step, which dominates
         # these short runs; every run here is compiled alike, so they still compute the same.
         "XLA_FLAGS": f"--xla_force_host_platform_device_count={devices}"
-                     " --xla_backend_optimization_level=0",
+        " --xla_backend_optimization_level=0",
         # The tests' compilation cache (conftest.py): process 0 of the resumed run, and every
         # run of a rerun, compile nothing. (JAX lets only process 0 write it.)
         "JAX_COMPILATION_CACHE_DIR": jax.config.jax_compilation_cache_dir or "",
         "JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS": "0.5",
     }
-    return subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
+    return subprocess.Popen(
+        argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env
+    )
 
 
 def start_processes(workdir, steps, *extra, count=2, data=None) -> list[subprocess.Popen]:
     """``count`` processes of one run on localhost; ``data`` may give each its own --data."""
     address = f"127.0.0.1:{free_port()}"
     return [
-        start(train_argv(workdir, steps, "--coordinator", address, "--num-processes", str(count),
-                         "--process-id", str(i), *extra,
-                         *(["--data", data[i]] if data else [])))
+        start(
+            train_argv(
+                workdir,
+                steps,
+                "--coordinator",
+                address,
+                "--num-processes",
+                str(count),
+                "--process-id",
+                str(i),
+                *extra,
+                *(["--data", data[i]] if data else []),
+            )
+        )
         for i in range(count)
     ]
 
@@ -112,8 +139,9 @@ def test_two_processes_train_as_one_process_with_two_devices_and_resume_exactly(
     assert (two / "config.json").is_file() and any((two / "tensorboard").iterdir())
     want = losses(one)
     got = losses(two)
-    np.testing.assert_allclose([got[s] for s in range(1, 7)], [want[s] for s in range(1, 7)],
-                               rtol=1e-5)
+    np.testing.assert_allclose(
+        [got[s] for s in range(1, 7)], [want[s] for s in range(1, 7)], rtol=1e-5
+    )
     for x, y in zip(weights_at_4, weights(one / "checkpoints" / "4"), strict=True):
         np.testing.assert_allclose(x, y, rtol=1e-5, atol=1e-6)
     assert_same_weights(two, one)  # step 6, after the resume
@@ -127,7 +155,8 @@ def test_a_failing_process_ends_every_process_of_the_run_with_its_error(tmp_path
     assert (code0, code1) == (2, 2)
     assert error_lines(err0) == [f"usp-jax train: error: image folder {missing} does not exist"]
     assert error_lines(err1) == [
-        f"usp-jax train: error: process 0 of 2 failed: image folder {missing} does not exist"]
+        f"usp-jax train: error: process 0 of 2 failed: image folder {missing} does not exist"
+    ]
 
 
 def test_sigterm_to_one_process_stops_every_process_at_one_step_with_its_checkpoint(tmp_path):
@@ -140,38 +169,65 @@ def test_sigterm_to_one_process_stops_every_process_at_one_step_with_its_checkpo
     processes[1].send_signal(signal.SIGTERM)  # as a scheduler does before it ends the job
     outcomes = [finish(p) for p in processes]
     assert [code for code, _, _ in outcomes] == [143, 143], outcomes
-    stops = [re.search(r"process (\d) of 2: stopped at step (\d+) of 10000 on SIGTERM", out)
-             for _, out, _ in outcomes]
+    stops = [
+        re.search(r"process (\d) of 2: stopped at step (\d+) of 10000 on SIGTERM", out)
+        for _, out, _ in outcomes
+    ]
     assert [m.group(1) for m in stops] == ["0", "1"]
     step = int(stops[0].group(2))
     assert int(stops[1].group(2)) == step < 10_000
-    assert weights_lib.resolve_checkpoint(run) == (run / "checkpoints", step)  # the only one: saved at the stop
+    assert weights_lib.resolve_checkpoint(run) == (
+        run / "checkpoints",
+        step,
+    )  # the only one: saved at the stop
     assert metrics_lib.read_metrics(run)[-1]["step"] == step
 
 
 def test_a_wrong_coordinator_address_ends_the_wait_with_one_line(tmp_path):
     address = f"127.0.0.1:{free_port()}"  # nothing listens there
     began = time.monotonic()
-    code, _, err = finish(start(train_argv(
-        tmp_path / "run", 2, "--coordinator", address, "--num-processes", "2", "--process-id", "1",
-        "--init-timeout", "2")))
+    code, _, err = finish(
+        start(
+            train_argv(
+                tmp_path / "run",
+                2,
+                "--coordinator",
+                address,
+                "--num-processes",
+                "2",
+                "--process-id",
+                "1",
+                "--init-timeout",
+                "2",
+            )
+        )
+    )
     assert code == 2
     assert error_lines(err) == [
         f"usp-jax train: error: process 1: nothing answered at the coordinator address {address}"
-        " within 2 s; start process 0 there first, or fix --coordinator"]
+        " within 2 s; start process 0 there first, or fix --coordinator"
+    ]
     assert time.monotonic() - began < 120  # import, 2 s, exit: no wait for JAX's own deadline
     assert not (tmp_path / "run").exists()
 
 
-@pytest.mark.parametrize("argv, message", [
-    (["--num-processes", "2", "--process-id", "2"],
-     "process id 2 is out of range for 2 processes (0 to 1)"),
-    (["--num-processes", "2", "--process-id", "0", "batch_size=3"],
-     "the global batch_size 3 is not divisible by the 2 processes; use a multiple of 2"),
-    (["--coordinator", "localhost"], "--coordinator 'localhost' is not HOST:PORT"),
-])
-def test_a_launch_that_cannot_work_is_one_line_before_waiting_for_anyone(argv, message, tmp_path,
-                                                                           capsys):
+@pytest.mark.parametrize(
+    "argv, message",
+    [
+        (
+            ["--num-processes", "2", "--process-id", "2"],
+            "process id 2 is out of range for 2 processes (0 to 1)",
+        ),
+        (
+            ["--num-processes", "2", "--process-id", "0", "batch_size=3"],
+            "the global batch_size 3 is not divisible by the 2 processes; use a multiple of 2",
+        ),
+        (["--coordinator", "localhost"], "--coordinator 'localhost' is not HOST:PORT"),
+    ],
+)
+def test_a_launch_that_cannot_work_is_one_line_before_waiting_for_anyone(
+    argv, message, tmp_path, capsys
+):
     code = main(["train", "--data", "sample", "--workdir", str(tmp_path / "run"), *TINY, *argv])
     assert code == 2
     err = capsys.readouterr().err.strip()

@@ -11,9 +11,9 @@ import numpy as np
 import pytest
 import skimage.data
 
-from usp_jax.inference import nms
 from usp_jax import evaluation as ev
 from usp_jax.evaluation.baselines import opencv_method
+from usp_jax.inference import nms
 
 SHAPE = (64, 64)
 EYE = np.eye(3)
@@ -181,7 +181,10 @@ def test_resize_pair_adapts_homography_per_image():
     assert small1.shape == small2.shape == (240, 320, 3)
     points = rng.uniform(0, 300, size=(10, 2))
     # Resize to original image-1 coordinates, warp with H, resize to image-2's new size.
-    expected = ev.project_points(points / [320 / 400, 240 / 300], homography) * [320 / 420, 240 / 330]
+    expected = ev.project_points(points / [320 / 400, 240 / 300], homography) * [
+        320 / 420,
+        240 / 330,
+    ]
     np.testing.assert_allclose(ev.project_points(points, adapted), expected, rtol=1e-10)
 
 

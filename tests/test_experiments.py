@@ -3,9 +3,6 @@ Table 1's configurations and relative changes, bootstrap intervals, breakdowns b
 rotation. Everything is imported through the package; scripts are only run."""
 
 import ast
-from usp_jax.evaluation import analysis, paper_tables, statistics
-from usp_jax.training import metrics as metrics_lib
-from usp_jax.training import step as step_lib
 import json
 import pathlib
 import subprocess
@@ -13,6 +10,10 @@ import sys
 
 import numpy as np
 import pytest
+
+from usp_jax.evaluation import analysis, paper_tables, statistics
+from usp_jax.training import metrics as metrics_lib
+from usp_jax.training import step as step_lib
 
 EXPERIMENTS = pathlib.Path(__file__).parents[1] / "experiments"
 
@@ -91,7 +92,9 @@ def test_table1_markdown_puts_the_papers_numbers_beside_ours():
     summary = {name: values for name in paper_tables.CONFIGS}
     changes = statistics.relative_changes(summary)
     intervals = {name: dict.fromkeys(values, (-1.0, 2.0)) for name in paper_tables.CONFIGS}
-    lines = paper_tables.table1_markdown(summary, changes, intervals, steps=10, pairs=3).splitlines()
+    lines = paper_tables.table1_markdown(
+        summary, changes, intervals, steps=10, pairs=3
+    ).splitlines()
     assert lines[2].startswith("| C0 base |  |  |  | 0.500 (0.633) | 2.000 (0.898) |")
     assert "| +0.0% (+15.3%)<br>[-1.0, +2.0] |" in lines[4]  # C2, HA e=1
     assert lines[-3].startswith("| C4 UnsuperPoint | x | x | x | 0.500 (0.612) |")
@@ -103,11 +106,16 @@ def test_table1_report_renders_again_from_its_own_json():
         "summary": {name: {"all": {**values, "pairs": 2}} for name in paper_tables.CONFIGS},
         "pairs": [row for name in paper_tables.CONFIGS for row in _rows(name, [0.5, 0.5])],
     }
-    training = {name: dict.fromkeys(paper_tables.TRAINING_STATS, 0.5) for name in paper_tables.CONFIGS}
+    training = {
+        name: dict.fromkeys(paper_tables.TRAINING_STATS, 0.5) for name in paper_tables.CONFIGS
+    }
     written, table = paper_tables.report(evaluated, steps=7, training=training)
     written = json.loads(json.dumps(written))
     assert written["evaluation"] == evaluated
-    assert table == paper_tables.report(written["evaluation"], written["steps"], written["training"])[1]
+    assert (
+        table
+        == paper_tables.report(written["evaluation"], written["steps"], written["training"])[1]
+    )
     assert "7 steps each from scratch, seed 0; 2 held-out pairs" in table
     assert "| C3 | 0.500 | 0 | 0.500 | 0.500 | 0.500 |" in table
     # C0 scored HA e=1 on no pair: its change is undefined, not a division error.
@@ -127,8 +135,10 @@ def test_table1_table_option_rejects_a_missing_or_old_file_in_one_line(tmp_path)
 
 
 def test_table1_training_stats_average_only_the_runs_last_steps():
-    rows = [{"step": step, **dict.fromkeys(paper_tables.TRAINING_STATS, float(step))}
-            for step in range(20, 1001, 20)]
+    rows = [
+        {"step": step, **dict.fromkeys(paper_tables.TRAINING_STATS, float(step))}
+        for step in range(20, 1001, 20)
+    ]
     stats = paper_tables.training_stats(rows, last=100)
     assert stats["usp/mean_d"] == pytest.approx(np.mean([920, 940, 960, 980, 1000]))
 
@@ -169,7 +179,9 @@ PAPER_SIZE_STAGES = ["stage6", "stage7", "stage10"]
 
 
 @pytest.mark.parametrize("later", LATER_STAGES)
-def test_a_later_stage_continues_the_first_with_a_new_seed_and_a_schedule_nearly_spent_at_its_last_step(later):
+def test_a_later_stage_continues_the_first_with_a_new_seed_and_a_schedule_nearly_spent_at_its_last_step(
+    later,
+):
 
     first = recipe("paper_network.py")
     stage = recipe(f"paper_network.py:{later}")
@@ -201,8 +213,10 @@ def test_the_paper_size_stages_keep_the_pixel_scale_of_the_128x160_crops_and_the
     stage = recipe(f"paper_network.py:{later}")
     assert (stage.data.height, stage.data.width) == (240, 320)
     # Output pixels per unit of the photo's extent: the same range of content scales.
-    assert np.allclose(np.divide(stage.data.width, stage.data.scale_range),
-                       np.divide(first.data.width, first.data.scale_range))
+    assert np.allclose(
+        np.divide(stage.data.width, stage.data.scale_range),
+        np.divide(first.data.width, first.data.scale_range),
+    )
     # At the paper's size the paper's descriptor weights hold the balance the 128x160 stages
     # rescaled lambda_d and alpha_desc for.
     assert stage.loss == config_lib.paper().loss
@@ -219,12 +233,21 @@ def test_the_lighting_stage_adds_gamma_and_wider_intensity_changes_and_changes_n
     # Every stage before trained on the default: linear changes of up to 30 %, no gamma.
     assert stage7.photometric == config_lib.paper().photometric
     assert (stage7.photometric.gamma, stage7.photometric.brightness) == (0.0, 0.3)
-    assert (stage10.photometric.gamma, stage10.photometric.brightness,
-            stage10.photometric.contrast) == (0.5, 0.5, 0.5)
-    assert dataclasses.replace(stage10.photometric, gamma=0.0, brightness=0.3,
-                               contrast=0.3) == stage7.photometric
+    assert (
+        stage10.photometric.gamma,
+        stage10.photometric.brightness,
+        stage10.photometric.contrast,
+    ) == (0.5, 0.5, 0.5)
+    assert (
+        dataclasses.replace(stage10.photometric, gamma=0.0, brightness=0.3, contrast=0.3)
+        == stage7.photometric
+    )
     assert (stage10.model, stage10.loss, stage10.homography, stage10.data) == (
-        stage7.model, stage7.loss, stage7.homography, stage7.data)
+        stage7.model,
+        stage7.loss,
+        stage7.homography,
+        stage7.data,
+    )
 
 
 def test_each_stage_has_its_own_seed_so_it_sees_other_crops_and_homographies():
@@ -237,8 +260,13 @@ def test_each_stage_has_its_own_seed_so_it_sees_other_crops_and_homographies():
 def test_chained_stages_share_one_step_axis_and_a_resumed_steps_later_row_wins():
     first = [{"step": 1, "loss": 9.0}, {"step": 2, "loss": 8.0}, {"step": 3, "loss": 7.0}]
     # Killed after step 2's checkpoint at step 3, resumed: step 3 is logged again.
-    second = [{"step": 1, "loss": 6.0}, {"step": 2, "loss": 5.0}, {"step": 3, "loss": 4.5},
-              {"step": 2, "loss": 5.5}, {"step": 3, "loss": 4.0}]
+    second = [
+        {"step": 1, "loss": 6.0},
+        {"step": 2, "loss": 5.0},
+        {"step": 3, "loss": 4.5},
+        {"step": 2, "loss": 5.5},
+        {"step": 3, "loss": 4.0},
+    ]
     rows, starts = metrics_lib.chain_stages([first, second])
     assert [row["step"] for row in rows] == [1, 2, 3, 4, 5, 6]
     assert [row["loss"] for row in rows] == [9.0, 8.0, 7.0, 6.0, 5.5, 4.0]
@@ -249,14 +277,23 @@ def _pair_row(method, split, k, corner_error, scene="v_a", **metrics):
     """A row as ``usp-jax evaluate --json`` writes it: a failed estimate's corner error is null."""
     ha = {f"ha{eps}": float(corner_error is not None and corner_error <= eps) for eps in (1, 3, 5)}
     base = {"rs": 0.5, "le": 1.0, **ha, "ms": 0.5}
-    return {"method": method, "scene": scene, "split": split, "k": k,
-            "corner_error": corner_error, **base, **metrics}
+    return {
+        "method": method,
+        "scene": scene,
+        "split": split,
+        "k": k,
+        "corner_error": corner_error,
+        **base,
+        **metrics,
+    }
 
 
 def test_by_view_averages_each_viewpoint_strength_and_a_failed_estimate_counts_as_infinite():
     rows = [
-        _pair_row("M", "v", 2, 0.5), _pair_row("M", "v", 2, 2.0, le=None),
-        _pair_row("M", "v", 3, 4.0), _pair_row("M", "v", 3, None),
+        _pair_row("M", "v", 2, 0.5),
+        _pair_row("M", "v", 2, 2.0, le=None),
+        _pair_row("M", "v", 3, 4.0),
+        _pair_row("M", "v", 3, None),
         _pair_row("M", "i", 2, 9.0),  # illumination pairs are not viewpoint strengths
     ]
     table = analysis.by_view(rows)
@@ -271,8 +308,10 @@ def test_by_view_averages_each_viewpoint_strength_and_a_failed_estimate_counts_a
 
 def test_paired_change_of_a_new_model_is_exact_when_every_pair_moves_alike():
     scenes = [f"v_{i}" for i in range(30)]
-    base = [_pair_row("UnsuperPoint", "v", 2, 1.0, scene=s, ms=0.2 + 0.02 * i)
-            for i, s in enumerate(scenes)]
+    base = [
+        _pair_row("UnsuperPoint", "v", 2, 1.0, scene=s, ms=0.2 + 0.02 * i)
+        for i, s in enumerate(scenes)
+    ]
     # Listed in another order, with a baseline's row in between: pairs are matched by scene.
     new = [_pair_row("ORB", "v", 2, 1.0, scene="v_0")] + [
         {**row, "ms": 1.1 * row["ms"]} for row in reversed(base)
@@ -297,7 +336,9 @@ def test_in_plane_rotation_reads_opencvs_rotation_and_the_local_jacobian_of_a_ke
     points = np.array([centre, centre + [step, 0], centre + [0, step]])[None]
     moved = cv2.perspectiveTransform(points, keystone)[0]
     jacobian = np.stack([moved[1] - moved[0], moved[2] - moved[0]], axis=1) / step
-    expected = np.degrees(np.arctan2(jacobian[1, 0] - jacobian[0, 1], jacobian[0, 0] + jacobian[1, 1]))
+    expected = np.degrees(
+        np.arctan2(jacobian[1, 0] - jacobian[0, 1], jacobian[0, 0] + jacobian[1, 1])
+    )
     assert analysis.in_plane_rotation(keystone, (240, 320)) == pytest.approx(expected, abs=1e-3)
 
 
@@ -313,8 +354,12 @@ def test_by_rotation_groups_viewpoint_pairs_by_the_rotation_of_their_homography(
         for k, angle in angles.items():
             h = np.vstack([cv2.getRotationMatrix2D((39.5, 29.5), angle, 1.0), [0, 0, 1]])
             np.savetxt(tmp_path / scene / f"H_1_{k}", h)
-    rows = [_pair_row("M", "v", 2, 0.5, scene="v_a"), _pair_row("M", "v", 3, None, scene="v_a"),
-            _pair_row("M", "v", 4, 2.0, scene="v_a"), _pair_row("M", "i", 3, 0.1, scene="i_a")]
+    rows = [
+        _pair_row("M", "v", 2, 0.5, scene="v_a"),
+        _pair_row("M", "v", 3, None, scene="v_a"),
+        _pair_row("M", "v", 4, 2.0, scene="v_a"),
+        _pair_row("M", "i", 3, 0.1, scene="i_a"),
+    ]
     table = analysis.by_rotation(rows, tmp_path)
     assert list(table["M"]) == ["0-10", "10-20", ">=20"]  # in order of the ranges, not of the text
     assert [s["pairs"] for s in table["M"].values()] == [1, 1, 1]  # the "i" pair is not counted
@@ -373,8 +418,7 @@ def test_a_config_file_function_is_named_after_a_colon_and_a_missing_one_is_a_cl
         config_lib.load(f"{EXPERIMENTS / 'absent.py'}:finetune")
 
 
-def test_compare_prints_the_rotation_table_of_every_method_in_30_degree_ranges_up_to_180(
-        tmp_path):
+def test_compare_prints_the_rotation_table_of_every_method_in_30_degree_ranges_up_to_180(tmp_path):
     import cv2
 
     image = np.zeros((60, 80, 3), np.uint8)
@@ -386,8 +430,11 @@ def test_compare_prints_the_rotation_table_of_every_method_in_30_degree_ranges_u
         h = np.vstack([cv2.getRotationMatrix2D((39.5, 29.5), angle, 1.0), [0, 0, 1]])
         np.savetxt(tmp_path / "v_a" / f"H_1_{k}", h)
     methods = ("UnsuperPoint", "ORB", "SIFT")
-    rows = [_pair_row(m, "v", k, 1.0 if m == "SIFT" else 9.0, scene="v_a")
-            for m in methods for k in angles]
+    rows = [
+        _pair_row(m, "v", k, 1.0 if m == "SIFT" else 9.0, scene="v_a")
+        for m in methods
+        for k in angles
+    ]
     table = analysis.by_rotation(rows, tmp_path)
     assert list(table) == list(methods)
     for ranges in table.values():
@@ -397,8 +444,18 @@ def test_compare_prints_the_rotation_table_of_every_method_in_30_degree_ranges_u
     # The command prints one row per method and range.
     results = tmp_path / "results.json"
     results.write_text(json.dumps({"pairs": rows}))
-    run = subprocess.run([sys.executable, str(EXPERIMENTS / "compare.py"), str(results),
-                          "--rotation", str(tmp_path)], capture_output=True, text=True, check=True)
+    run = subprocess.run(
+        [
+            sys.executable,
+            str(EXPERIMENTS / "compare.py"),
+            str(results),
+            "--rotation",
+            str(tmp_path),
+        ],
+        capture_output=True,
+        text=True,
+        check=True,
+    )
     printed = run.stdout.split("| rotation (deg) |")[1]
     for method in methods:
         for label in ("0-30", "30-60", "90-120", "150-180"):
@@ -414,7 +471,9 @@ def test_the_rotation_config_is_the_fast_recipe_turned_over_the_full_circle():
     from usp_jax import config as config_lib
     from usp_jax.core.model import fast_config
 
-    stages = [config_lib.load(str(EXPERIMENTS / spec)) for spec in ("rotation.py", "rotation.py:finetune")]
+    stages = [
+        config_lib.load(str(EXPERIMENTS / spec)) for spec in ("rotation.py", "rotation.py:finetune")
+    ]
     for cfg in stages:
         assert cfg.model == fast_config() and cfg.data.context_window
         assert cfg.homography.rotation_range == (-180.0, 180.0)
@@ -430,6 +489,7 @@ def test_the_rotation_config_is_the_fast_recipe_turned_over_the_full_circle():
     ):
         assert command in doc
     # Measured with 4,000 draws (training_rotations.py): half the pairs turn by 90 degrees or more.
-    angles = analysis.training_rotations(stages[0].homography, 128, 160, draws=400,
-                                          window=stages[0].data.example_shape[:2])
+    angles = analysis.training_rotations(
+        stages[0].homography, 128, 160, draws=400, window=stages[0].data.example_shape[:2]
+    )
     assert 0.4 < np.mean(np.abs(angles) >= 90) < 0.6

@@ -13,30 +13,42 @@ import jax
 import numpy as np
 import pytest
 
-from usp_jax.training import metrics as metrics_lib
-from usp_jax.inference import nms
-from usp_jax.training import step as step_lib
-from usp_jax.training import workdir as workdir_lib
-from usp_jax.training import checkpoint
-from usp_jax.training import data
-from usp_jax import inference
-from usp_jax.training import train
 from usp_jax import config as config_lib
+from usp_jax import inference
 from usp_jax.cli import main
 from usp_jax.core.model import ModelConfig
+from usp_jax.inference import nms
+from usp_jax.training import checkpoint, data, train
+from usp_jax.training import metrics as metrics_lib
+from usp_jax.training import step as step_lib
+from usp_jax.training import workdir as workdir_lib
 
-SMALL_MODEL = ModelConfig(backbone_channels=(8, 8, 8, 8, 16, 16, 16, 16), head_channels=16,
-                          descriptor_dim=16)
-TINY = ["--config", "cpu", "--no-progress", "model.backbone_channels=(8, 8, 8, 8, 16, 16, 16, 16)",
-        "model.head_channels=16", "model.descriptor_dim=16", "data.height=32", "data.width=48",
-        "batch_size=2", "checkpoint_every=2", "log_every=1"]
+SMALL_MODEL = ModelConfig(
+    backbone_channels=(8, 8, 8, 8, 16, 16, 16, 16), head_channels=16, descriptor_dim=16
+)
+TINY = [
+    "--config",
+    "cpu",
+    "--no-progress",
+    "model.backbone_channels=(8, 8, 8, 8, 16, 16, 16, 16)",
+    "model.head_channels=16",
+    "model.descriptor_dim=16",
+    "data.height=32",
+    "data.width=48",
+    "batch_size=2",
+    "checkpoint_every=2",
+    "log_every=1",
+]
 
 
 def tiny_config(**changes) -> config_lib.Config:
     base = config_lib.Config(
         model=SMALL_MODEL,
         data=data.DataConfig(source="sample", height=32, width=48, num_workers=2),
-        batch_size=2, num_steps=2, log_every=1, checkpoint_every=2,
+        batch_size=2,
+        num_steps=2,
+        log_every=1,
+        checkpoint_every=2,
     )
     return config_lib.override(base, [f"{k}={v}" for k, v in changes.items()])
 
@@ -52,21 +64,24 @@ def one_error_line(capsys, command: str) -> str:
 # Values: range-checked where they are parsed, before anything is written
 
 
-@pytest.mark.parametrize("override, message", [
-    ("data.height=7", "data.height=7 must be >= 8"),
-    ("data.width=100", "multiple of 8"),
-    ("checkpoint_every=0", "checkpoint_every=0 must be >= 1"),
-    ("log_every=0", "log_every=0 must be >= 1"),
-    ("num_steps=-1", "num_steps=-1 must be >= 1"),
-    ("batch_size=0", "batch_size=0"),
-    ("optim.learning_rate=nan", "not a finite number"),
-    ("loss.alpha_usp=inf", "not a finite number"),
-    ("loss.alpha_desc=-1", "must be >= 0"),
-    ("model=3", "'model' is a section"),
-    ("model.descriptor_dim=0", "model.descriptor_dim=0"),
-    ("model.dtype=int8", "float32, bfloat16, float16"),
-    ("data.shuffle_seed='x'", "is not of type int or None"),
-])
+@pytest.mark.parametrize(
+    "override, message",
+    [
+        ("data.height=7", "data.height=7 must be >= 8"),
+        ("data.width=100", "multiple of 8"),
+        ("checkpoint_every=0", "checkpoint_every=0 must be >= 1"),
+        ("log_every=0", "log_every=0 must be >= 1"),
+        ("num_steps=-1", "num_steps=-1 must be >= 1"),
+        ("batch_size=0", "batch_size=0"),
+        ("optim.learning_rate=nan", "not a finite number"),
+        ("loss.alpha_usp=inf", "not a finite number"),
+        ("loss.alpha_desc=-1", "must be >= 0"),
+        ("model=3", "'model' is a section"),
+        ("model.descriptor_dim=0", "model.descriptor_dim=0"),
+        ("model.dtype=int8", "float32, bfloat16, float16"),
+        ("data.shuffle_seed='x'", "is not of type int or None"),
+    ],
+)
 def test_a_bad_config_value_is_one_line_and_leaves_no_workdir(override, message, tmp_path, capsys):
     workdir = tmp_path / "w"
     assert main(["train", "--data", "sample", "--workdir", str(workdir), *TINY, override]) == 2
@@ -83,14 +98,23 @@ def test_steps_and_num_steps_must_agree_and_negatives_are_refused(tmp_path, caps
     assert not (tmp_path / "w").exists()
 
 
-@pytest.mark.parametrize("source, message", [
-    ("def get_config(:\n", "syntax error at line 1"),
-    ("import no_such_module_of_usp_jax\n", "failed to run: ModuleNotFoundError"),
-    ("def get_config():\n    return 3\n", "get_config() returned int, not a"),
-    ("def get_config():\n    raise RuntimeError('boom')\n", "get_config() failed: RuntimeError: boom"),
-    ("from usp_jax import config\ndef get_config():\n"
-     "    return config.Config(log_every=0)\n", "log_every=0 must be >= 1"),
-])
+@pytest.mark.parametrize(
+    "source, message",
+    [
+        ("def get_config(:\n", "syntax error at line 1"),
+        ("import no_such_module_of_usp_jax\n", "failed to run: ModuleNotFoundError"),
+        ("def get_config():\n    return 3\n", "get_config() returned int, not a"),
+        (
+            "def get_config():\n    raise RuntimeError('boom')\n",
+            "get_config() failed: RuntimeError: boom",
+        ),
+        (
+            "from usp_jax import config\ndef get_config():\n"
+            "    return config.Config(log_every=0)\n",
+            "log_every=0 must be >= 1",
+        ),
+    ],
+)
 def test_a_broken_config_file_is_one_line(source, message, tmp_path, capsys):
     path = tmp_path / "recipe.py"
     path.write_text(source)
@@ -100,16 +124,19 @@ def test_a_broken_config_file_is_one_line(source, message, tmp_path, capsys):
     assert not (tmp_path / "w").exists()
 
 
-@pytest.mark.parametrize("argv, message", [
-    (["detect", "a.png", "--nms", "nan"], "'nan' is not a radius"),
-    (["detect", "a.png", "--nms", "inf"], "'inf' is not a radius"),
-    (["detect", "a.png", "--nms", "-1"], "'-1' is not a radius"),
-    (["match", "a.png", "b.png", "--nms=-inf"], "'-inf' is not a radius"),
-    (["export", "--save-weights", "w.npz", "--nms", "nan"], "'nan' is not a radius"),
-    (["detect", "a.png", "--upsample", "100"], "'100' is above 8"),
-    (["evaluate", "--hpatches", "x", "--res", "100000x8"], "exceeds"),
-    (["train", "--workdir", "w", "--steps", "0"], "'0' is not a positive integer"),
-])
+@pytest.mark.parametrize(
+    "argv, message",
+    [
+        (["detect", "a.png", "--nms", "nan"], "'nan' is not a radius"),
+        (["detect", "a.png", "--nms", "inf"], "'inf' is not a radius"),
+        (["detect", "a.png", "--nms", "-1"], "'-1' is not a radius"),
+        (["match", "a.png", "b.png", "--nms=-inf"], "'-inf' is not a radius"),
+        (["export", "--save-weights", "w.npz", "--nms", "nan"], "'nan' is not a radius"),
+        (["detect", "a.png", "--upsample", "100"], "'100' is above 8"),
+        (["evaluate", "--hpatches", "x", "--res", "100000x8"], "exceeds"),
+        (["train", "--workdir", "w", "--steps", "0"], "'0' is not a positive integer"),
+    ],
+)
 def test_a_bad_option_is_one_parser_line_with_status_2(argv, message, capsys):
     with pytest.raises(SystemExit) as exit_info:
         main(argv)
@@ -176,17 +203,21 @@ def _rewrite(source, target, change):
     return target
 
 
-@pytest.mark.parametrize("case, message", [
-    ("nan", "holds NaN or infinite values"),
-    ("inf", "holds NaN or infinite values"),
-    ("shape", "has shape (3, 3)"),
-    ("missing", "is missing"),
-    ("extra", "params/Extra/kernel is not part of"),
-    ("config", "model_config entry is not a valid model config"),
-    ("strings", "not numbers"),
-])
-def test_a_bad_weights_file_is_one_line_naming_the_file_and_the_array(case, message, weights,
-                                                                        tmp_path, capsys):
+@pytest.mark.parametrize(
+    "case, message",
+    [
+        ("nan", "holds NaN or infinite values"),
+        ("inf", "holds NaN or infinite values"),
+        ("shape", "has shape (3, 3)"),
+        ("missing", "is missing"),
+        ("extra", "params/Extra/kernel is not part of"),
+        ("config", "model_config entry is not a valid model config"),
+        ("strings", "not numbers"),
+    ],
+)
+def test_a_bad_weights_file_is_one_line_naming_the_file_and_the_array(
+    case, message, weights, tmp_path, capsys
+):
     key = "params/descriptor/kernel"
 
     def change(arrays):
@@ -223,29 +254,38 @@ def test_good_weights_still_load(weights):
 # Radius NMS at any radius: exact, memory bounded
 
 
-@pytest.mark.parametrize("radius, cell, grid", [
-    (30.0, 8.0, (6, 7)), (100.0, 8.0, (6, 7)), (1e9, 8.0, (6, 7)), (40.0, 8.0, (20, 30)),
-    (33.0, 4.0, (20, 30)), (4.0, 8.0, (1, 1)), (1e9, 8.0, (1, 5)),
-])
+@pytest.mark.parametrize(
+    "radius, cell, grid",
+    [
+        (30.0, 8.0, (6, 7)),
+        (100.0, 8.0, (6, 7)),
+        (1e9, 8.0, (6, 7)),
+        (40.0, 8.0, (20, 30)),
+        (33.0, 4.0, (20, 30)),
+        (4.0, 8.0, (1, 1)),
+        (1e9, 8.0, (1, 5)),
+    ],
+)
 def test_radius_nms_at_large_radii_matches_evaluation_nms_radius(radius, cell, grid):
     cells_h, cells_w = grid
     rng = np.random.default_rng(7)
     m = cells_h * cells_w
     rows, cols = np.divmod(np.arange(m), cells_w)
-    keypoints = ((np.stack([cols, rows], axis=1) + rng.uniform(size=(m, 2))) * cell
-                 - 0.5).astype(np.float32)
+    keypoints = ((np.stack([cols, rows], axis=1) + rng.uniform(size=(m, 2))) * cell - 0.5).astype(
+        np.float32
+    )
     scores = rng.uniform(size=m).astype(np.float32)
     scores[: m // 4] = scores[0]  # ties: the lower index goes first in both
     valid = rng.uniform(size=m) < 0.9
     valid[0] = True
-    keep = np.asarray(
-        nms.radius_nms(keypoints, scores, valid, cells_h, cells_w, radius, cell))
+    keep = np.asarray(nms.radius_nms(keypoints, scores, valid, cells_h, cells_w, radius, cell))
     candidates = np.flatnonzero(valid)
     expected = candidates[nms.radius_nms_host(keypoints[candidates], scores[candidates], radius)]
     np.testing.assert_array_equal(np.flatnonzero(keep), np.sort(expected))
     # limit: the strongest `limit` points of the same result.
-    limited = np.asarray(nms.radius_nms(keypoints, scores, valid, cells_h, cells_w, radius,
-                                              cell, limit=2))
+    limited = np.asarray(
+        nms.radius_nms(keypoints, scores, valid, cells_h, cells_w, radius, cell, limit=2)
+    )
     np.testing.assert_array_equal(np.flatnonzero(limited), np.sort(expected[:2]))
 
 
@@ -267,8 +307,9 @@ def trained(tmp_path_factory):
 
 
 def _snapshot(workdir):
-    return {p.relative_to(workdir): p.read_bytes() for p in sorted(workdir.rglob("*"))
-            if p.is_file()}
+    return {
+        p.relative_to(workdir): p.read_bytes() for p in sorted(workdir.rglob("*")) if p.is_file()
+    }
 
 
 def test_resuming_with_other_settings_is_refused_naming_the_keys(trained):
@@ -287,11 +328,31 @@ def test_an_incompatible_network_is_refused_even_when_changes_are_allowed(traine
     with pytest.raises(workdir_lib.ConfigChanged, match="do not fit .*descriptor"):
         train.fit(bigger, trained, progress=False, num_steps=4, allow_config_change=True)
     with pytest.raises(workdir_lib.ConfigChanged, match="do not fit"):
-        train.fit(tiny_config(**{"optim.clip_norm": 1.0}), trained, progress=False,
-                  num_steps=4, allow_config_change=True)
+        train.fit(
+            tiny_config(**{"optim.clip_norm": 1.0}),
+            trained,
+            progress=False,
+            num_steps=4,
+            allow_config_change=True,
+        )
     assert _snapshot(trained) == before
-    assert main(["train", "--workdir", str(trained), "--data", "sample", "--no-progress",
-                 "--steps", "4", "--allow-config-change", "model.descriptor_dim=128"]) == 2
+    assert (
+        main(
+            [
+                "train",
+                "--workdir",
+                str(trained),
+                "--data",
+                "sample",
+                "--no-progress",
+                "--steps",
+                "4",
+                "--allow-config-change",
+                "model.descriptor_dim=128",
+            ]
+        )
+        == 2
+    )
     line = one_error_line(capsys, "train")
     assert "model.descriptor_dim: 16 -> 128" in line
     assert _snapshot(trained) == before
@@ -301,16 +362,23 @@ def test_allowed_changes_resume_and_are_recorded(tmp_path):
     workdir = tmp_path / "run"
     train.fit(tiny_config(), workdir, progress=False)
     # The step count, intervals and data loading may change without the flag.
-    train.fit(tiny_config(num_steps=3, log_every=3, **{"data.num_workers": 1}), workdir,
-              progress=False)
+    train.fit(
+        tiny_config(num_steps=3, log_every=3, **{"data.num_workers": 1}), workdir, progress=False
+    )
     assert config_lib.read(workdir / "config.json").num_steps == 3
     assert not (workdir / workdir_lib.CONFIG_CHANGES_FILE).exists()
-    state = train.fit(tiny_config(num_steps=4, **{"optim.learning_rate": 0.002}), workdir,
-                      progress=False, allow_config_change=True)
+    state = train.fit(
+        tiny_config(num_steps=4, **{"optim.learning_rate": 0.002}),
+        workdir,
+        progress=False,
+        allow_config_change=True,
+    )
     assert int(state.step) == 4
     assert config_lib.read(workdir / "config.json").optim.learning_rate == 0.002
-    changes = [json.loads(line) for line in
-               (workdir / workdir_lib.CONFIG_CHANGES_FILE).read_text().splitlines()]
+    changes = [
+        json.loads(line)
+        for line in (workdir / workdir_lib.CONFIG_CHANGES_FILE).read_text().splitlines()
+    ]
     assert changes == [{"step": 3, "changes": {"optim.learning_rate": [0.001, 0.002]}}]
     assert not (workdir / workdir_lib.LOCK_FILE).exists()
 
@@ -335,9 +403,22 @@ def test_a_second_train_on_a_locked_workdir_is_told_who_holds_it(tmp_path):
     lock = workdir_lib.WorkdirLock(workdir)
     try:
         result = subprocess.run(
-            [sys.executable, "-m", "usp_jax", "train", "--data", "sample", "--workdir",
-             str(workdir), "--steps", "2", *TINY],
-            capture_output=True, text=True, timeout=300,
+            [
+                sys.executable,
+                "-m",
+                "usp_jax",
+                "train",
+                "--data",
+                "sample",
+                "--workdir",
+                str(workdir),
+                "--steps",
+                "2",
+                *TINY,
+            ],
+            capture_output=True,
+            text=True,
+            timeout=300,
         )
     finally:
         lock.release()
@@ -378,7 +459,9 @@ def _full_disk_after(step):
 def test_a_full_disk_stops_the_run_in_one_error_and_the_workdir_resumes(tmp_path, monkeypatch):
     workdir = tmp_path / "run"
     monkeypatch.setattr(metrics_lib.MetricsWriter, "write", _full_disk_after(2))
-    with pytest.raises(workdir_lib.WorkdirError, match="No space left on device.*checkpoint is step 2"):
+    with pytest.raises(
+        workdir_lib.WorkdirError, match="No space left on device.*checkpoint is step 2"
+    ):
         train.fit(tiny_config(num_steps=4), workdir, progress=False)
     monkeypatch.undo()
     assert checkpoint.manager(workdir / "checkpoints").latest_step() == 2
@@ -394,8 +477,10 @@ def test_a_full_disk_stops_the_run_in_one_error_and_the_workdir_resumes(tmp_path
 
 
 def test_orbax_write_errors_are_recognised_as_a_full_disk():
-    error = ValueError('RESOURCE_EXHAUSTED: Error writing local file "/x/checkpoints/4.orbax-'
-                       'checkpoint-tmp/_sharding": No space left on device [os_error_code=\'28\']')
+    error = ValueError(
+        'RESOURCE_EXHAUSTED: Error writing local file "/x/checkpoints/4.orbax-'
+        "checkpoint-tmp/_sharding\": No space left on device [os_error_code='28']"
+    )
     assert train._os_error_in(RuntimeError("no system error behind this")) is None
     try:
         raise RuntimeError("save failed") from error
@@ -421,9 +506,22 @@ sys.exit(main(sys.argv[1:]))
 def test_a_full_disk_is_one_line_from_the_command(tmp_path):
     workdir = tmp_path / "run"
     result = subprocess.run(
-        [sys.executable, "-c", FULL_DISK_SCRIPT, "train", "--data", "sample", "--workdir",
-         str(workdir), "--steps", "4", *TINY],
-        capture_output=True, text=True, timeout=300,
+        [
+            sys.executable,
+            "-c",
+            FULL_DISK_SCRIPT,
+            "train",
+            "--data",
+            "sample",
+            "--workdir",
+            str(workdir),
+            "--steps",
+            "4",
+            *TINY,
+        ],
+        capture_output=True,
+        text=True,
+        timeout=300,
     )
     err = [line for line in result.stderr.splitlines() if "libpng" not in line]
     assert result.returncode == 2 and len(err) == 1, result.stderr
@@ -431,19 +529,35 @@ def test_a_full_disk_is_one_line_from_the_command(tmp_path):
     assert "metrics.jsonl" in err[0]
 
 
-@pytest.mark.skipif(os.geteuid() != 0 or not sys.platform.startswith("linux"),
-                    reason="mounting a small tmpfs needs root on Linux")
+@pytest.mark.skipif(
+    os.geteuid() != 0 or not sys.platform.startswith("linux"),
+    reason="mounting a small tmpfs needs root on Linux",
+)
 def test_a_really_full_tmpfs_is_one_line(tmp_path):
     mount = tmp_path / "small"
     mount.mkdir()
-    if subprocess.run(["mount", "-t", "tmpfs", "-o", "size=64k", "tmpfs", str(mount)],
-                      capture_output=True).returncode:
+    if subprocess.run(
+        ["mount", "-t", "tmpfs", "-o", "size=64k", "tmpfs", str(mount)], capture_output=True
+    ).returncode:
         pytest.skip("this container may not mount a tmpfs")
     try:
         result = subprocess.run(
-            [sys.executable, "-m", "usp_jax", "train", "--data", "sample", "--workdir",
-             str(mount / "run"), "--steps", "2", *TINY],
-            capture_output=True, text=True, timeout=300,
+            [
+                sys.executable,
+                "-m",
+                "usp_jax",
+                "train",
+                "--data",
+                "sample",
+                "--workdir",
+                str(mount / "run"),
+                "--steps",
+                "2",
+                *TINY,
+            ],
+            capture_output=True,
+            text=True,
+            timeout=300,
         )
     finally:
         subprocess.run(["umount", "-l", str(mount)], capture_output=True)
@@ -455,6 +569,12 @@ def test_a_really_full_tmpfs_is_one_line(tmp_path):
     assert "No space left on device" in errors[0]
     others = [line for line in err if line not in errors]
     # (Those threads' lines may interleave.) No other error, and no usp-jax frame.
-    assert not [line for line in others if "usp_jax" in line
-                or ("Error" in line and not any(
-                    part in line for part in ("RuntimeError", "Event loop", "asyncio")))], others
+    assert not [
+        line
+        for line in others
+        if "usp_jax" in line
+        or (
+            "Error" in line
+            and not any(part in line for part in ("RuntimeError", "Event loop", "asyncio"))
+        )
+    ], others

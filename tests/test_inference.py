@@ -7,19 +7,18 @@ import numpy as np
 import optax
 import pytest
 
-from usp_jax.inference import nms
-from usp_jax.training import checkpoint
-from usp_jax import evaluation
-from usp_jax import inference
+from usp_jax import evaluation, inference
 from usp_jax.config import Config
-from usp_jax.inference import Detector, Features
 from usp_jax.core.model import ModelConfig, UnsuperPoint, fast_config, init_variables
+from usp_jax.inference import Detector, Features, nms
+from usp_jax.training import checkpoint
 
 SMALL = ModelConfig(
     backbone_channels=(8, 8, 8, 8, 16, 16, 16, 16), head_channels=16, descriptor_dim=16
 )
-SMALL_FAST = fast_config(backbone_channels=(4, 8, 8, 16), head_channels=8,
-                         descriptor_head_channels=8, descriptor_dim=16)
+SMALL_FAST = fast_config(
+    backbone_channels=(4, 8, 8, 16), head_channels=8, descriptor_head_channels=8, descriptor_dim=16
+)
 
 
 def calibrated_variables(config, photo):
@@ -133,9 +132,7 @@ def test_radius_nms_matches_evaluation_nms_radius(radius, cell):
     keypoints = (np.stack([cols, rows], axis=1) + relative) * cell - 0.5
     scores = rng.uniform(size=m).astype(np.float32)
     valid = rng.uniform(size=m) < 0.9
-    keep = np.asarray(
-        nms.radius_nms(keypoints, scores, valid, cells_h, cells_w, radius, cell)
-    )
+    keep = np.asarray(nms.radius_nms(keypoints, scores, valid, cells_h, cells_w, radius, cell))
     candidates = np.flatnonzero(valid)
     expected = candidates[nms.radius_nms_host(keypoints[candidates], scores[candidates], radius)]
     assert 0 < len(expected) < len(candidates)  # the test exercises suppression
@@ -309,8 +306,9 @@ def test_load_takes_a_weights_file_a_training_workdir_or_nothing_for_the_shipped
     assert from_file.model_config == SMALL and from_file.top_n == 5
     _, stored = inference.load_weights(weights)
     assert_same_features(from_file.detect(image), Detector(stored, SMALL).detect(image, top_n=5))
-    np.testing.assert_array_equal(Detector.load().detect(image, top_n=5).keypoints,
-                                  from_file.detect(image).keypoints)
+    np.testing.assert_array_equal(
+        Detector.load().detect(image, top_n=5).keypoints, from_file.detect(image).keypoints
+    )
     with pytest.raises(FileNotFoundError, match="absent.npz"):
         Detector.load(tmp_path / "absent.npz")
     with pytest.raises(FileNotFoundError):
@@ -378,7 +376,9 @@ def test_to_cv2_points_match_and_give_a_homography(detector, photo):
     assert correct.sum() >= 50 and correct.mean() > 0.5
     homography, _ = cv2.findHomography(p1, p2, cv2.RANSAC, 1.0)
     corners = np.array([[0, 0], [0, height - 1], [width - 1, 0], [width - 1, height - 1]])
-    error = evaluation.project_points(corners, homography) - evaluation.project_points(corners, shift)
+    error = evaluation.project_points(corners, homography) - evaluation.project_points(
+        corners, shift
+    )
     assert np.linalg.norm(error, axis=1).mean() < 2
 
 
@@ -396,14 +396,18 @@ class _CornerDetector(Detector):
         return [Features(keypoints, np.ones(2, np.float32), np.zeros((2, 4), np.float32))]
 
 
-@pytest.mark.parametrize("max_side, detected_shape", [(0, (600, 800)), (1000, (600, 800)),
-                                                      (400, (300, 400))])
-def test_detection_on_a_smaller_copy_returns_keypoints_in_the_originals_pixels(max_side,
-                                                                               detected_shape):
+@pytest.mark.parametrize(
+    "max_side, detected_shape", [(0, (600, 800)), (1000, (600, 800)), (400, (300, 400))]
+)
+def test_detection_on_a_smaller_copy_returns_keypoints_in_the_originals_pixels(
+    max_side, detected_shape
+):
     detector = _CornerDetector(max_side)
     features = detector.detect(np.zeros((600, 800, 3), np.uint8))
     assert detector.shape[:2] == detected_shape
     # Halved by area averaging, the first pixel of the copy covers pixels 0-1 of the original
     # (centre 0.5) and the last one pixels 798-799 (centre 798.5).
-    expected = [[0, 0], [799, 599]] if detected_shape == (600, 800) else [[0.5, 0.5], [798.5, 598.5]]
+    expected = (
+        [[0, 0], [799, 599]] if detected_shape == (600, 800) else [[0.5, 0.5], [798.5, 598.5]]
+    )
     np.testing.assert_allclose(features.keypoints, expected)

@@ -31,10 +31,13 @@ def test_detection_imports_no_training_evaluation_or_cli_code_and_none_of_their_
         "detector.detect(np.zeros((40, 48, 3), np.uint8), top_n=5)\n"
         "print(' '.join(sorted(sys.modules)))\n"
     )
-    loaded = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True,
-                            check=True).stdout.split()
+    loaded = subprocess.run(
+        [sys.executable, "-c", script], capture_output=True, text=True, check=True
+    ).stdout.split()
     heavy = [m for m in loaded if m.split(".")[0] in HEAVY]
-    ours = [m for m in loaded if m.startswith("usp_jax.") and _layer(m) not in ("core", "inference")]
+    ours = [
+        m for m in loaded if m.startswith("usp_jax.") and _layer(m) not in ("core", "inference")
+    ]
     assert heavy == [] and ours == []
 
 
@@ -57,12 +60,17 @@ def test_imports_go_one_way_cli_then_training_and_evaluation_then_inference_then
         mine = _layer(module)
         for name in _imports(path):
             theirs = _layer(name)
-            if LAYERS[theirs] > LAYERS[mine] or (LAYERS[theirs] == LAYERS[mine] == 2 and theirs != mine):
+            if LAYERS[theirs] > LAYERS[mine] or (
+                LAYERS[theirs] == LAYERS[mine] == 2 and theirs != mine
+            ):
                 wrong.append(f"{module} imports {name}")
     assert wrong == []
 
 
 def test_no_module_is_over_500_lines():
-    long = {str(p.relative_to(PACKAGE)): n for p in PACKAGE.rglob("*.py")
-            if (n := len(p.read_text().splitlines())) > 500}
+    long = {
+        str(p.relative_to(PACKAGE)): n
+        for p in PACKAGE.rglob("*.py")
+        if (n := len(p.read_text().splitlines())) > 500
+    }
     assert long == {}

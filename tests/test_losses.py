@@ -6,9 +6,7 @@ import numpy as np
 import pytest
 
 import usp_jax
-from usp_jax.core import correspondence
-from usp_jax.core import geometry
-from usp_jax.core import losses
+from usp_jax.core import correspondence, geometry, losses
 from usp_jax.core.model import ModelConfig, Predictions, UnsuperPoint, init_variables
 
 
@@ -20,7 +18,8 @@ def test_uniform_loss_is_eq10_on_sorted_values():
     assert float(losses.uniform_loss(jnp.asarray(v), 2.0, 5.0)) == pytest.approx(expected, rel=1e-5)
     # Order of the input does not matter: it is a distance between distributions.
     assert float(losses.uniform_loss(jnp.asarray(v[::-1]), 2.0, 5.0)) == pytest.approx(
-        expected, rel=1e-5)
+        expected, rel=1e-5
+    )
 
 
 def test_uniform_loss_small_for_even_spread_large_for_clusters():
@@ -71,8 +70,9 @@ def test_decorrelation_loss_matches_numpy_corrcoef(mode):
     r = np.corrcoef(f, rowvar=False)
     off = r[~np.eye(6, dtype=bool)]
     expected = np.sum(off**2) if mode == "squared" else np.sum(off)
-    assert float(losses.decorrelation_loss(jnp.asarray(f), mode)) == pytest.approx(expected,
-                                                                                   rel=1e-4)
+    assert float(losses.decorrelation_loss(jnp.asarray(f), mode)) == pytest.approx(
+        expected, rel=1e-4
+    )
 
 
 def test_squared_decorrelation_is_zero_only_when_decorrelated():
@@ -96,15 +96,19 @@ def test_usp_loss_matches_hand_computation():
     paired = np.array([True, True, True, False])
     k = paired.sum()
     mean_d = d[paired].mean()
-    expected = (1 * d[paired].sum() + 2 * ((sa - sb)[paired] ** 2).sum()
-                + (((sa + sb) / 2 - 0) * (d - mean_d))[paired].sum())
+    expected = (
+        1 * d[paired].sum()
+        + 2 * ((sa - sb)[paired] ** 2).sum()
+        + (((sa + sb) / 2 - 0) * (d - mean_d))[paired].sum()
+    )
     loss, metrics = losses.usp_loss(*map(jnp.asarray, (sa, sb, d, paired)))
     assert float(loss) == pytest.approx(expected, rel=1e-5)
     assert float(metrics["K"]) == k and float(metrics["mean_d"]) == pytest.approx(mean_d)
 
 
-SMALL = ModelConfig(backbone_channels=(8, 8, 8, 8, 16, 16, 16, 16), head_channels=16,
-                    descriptor_dim=16)
+SMALL = ModelConfig(
+    backbone_channels=(8, 8, 8, 8, 16, 16, 16, 16), head_channels=16, descriptor_dim=16
+)
 
 
 def predict(config, images):
@@ -145,7 +149,8 @@ def test_total_loss_gradient_through_the_model_is_finite_and_nonzero():
     images = jax.random.uniform(jax.random.PRNGKey(2), (2, 32, 48, 3))
     variables = init_variables(jax.random.PRNGKey(0), SMALL)
     hs = jax.vmap(lambda k: geometry.sample_homography(k, 32, 48))(
-        jax.random.split(jax.random.PRNGKey(3), 2))
+        jax.random.split(jax.random.PRNGKey(3), 2)
+    )
 
     def loss(params):
         pred_a = UnsuperPoint(SMALL).apply({**variables, "params": params}, images)
@@ -168,7 +173,8 @@ def test_no_term_swamps_the_others_at_initialisation(photo):
     variables = init_variables(jax.random.PRNGKey(0))
     # Training mode: BatchNorm normalises with batch statistics, as in the first train step.
     pred, _ = jax.jit(lambda x: model.apply(variables, x, train=True, mutable=["batch_stats"]))(
-        jnp.concatenate([image, warped[None]]))
+        jnp.concatenate([image, warped[None]])
+    )
     pa = jax.tree.map(lambda x: x[:1], pred)
     pb = jax.tree.map(lambda x: x[1:], pred)
     _, metrics = total_loss(pa, pb, h[None], 240, 320)
@@ -188,7 +194,9 @@ def test_similarity_metrics_are_the_mean_over_positive_and_negative_pairs():
     desc = np.asarray(pred.descriptors)
     sim = desc @ desc.T
     assert float(metrics["desc/sim_positive"]) == pytest.approx(sim[(c > 0) & visible].mean(), 1e-5)
-    assert float(metrics["desc/sim_negative"]) == pytest.approx(sim[(c == 0) & visible].mean(), 1e-5)
+    assert float(metrics["desc/sim_negative"]) == pytest.approx(
+        sim[(c == 0) & visible].mean(), 1e-5
+    )
 
     one_vector = jnp.tile(pred.descriptors[:1], (pred.descriptors.shape[0], 1))
     collapsed = pred._replace(descriptors=one_vector)
@@ -207,15 +215,20 @@ def test_cpu_photos_descriptor_weights_keep_the_papers_balance_at_128x160():
         points = (grid.reshape(-1, 2) + 0.5) * 8 - 0.5
         h = geometry.sample_homography(jax.random.PRNGKey(0), height, width)
         pred = Predictions(
-            scores=jnp.zeros(len(points)), relative=jnp.full((len(points), 2), 0.5),
-            keypoints=points, descriptors=jnp.zeros((len(points), 4)))
+            scores=jnp.zeros(len(points)),
+            relative=jnp.full((len(points), 2), 0.5),
+            keypoints=points,
+            descriptors=jnp.zeros((len(points), 4)),
+        )
         corr = losses.branch_correspondences(pred, pred, h, height, width)
         c = np.asarray(correspondence.correspondence_matrix(corr, 8.0))
         visible = np.asarray(corr.valid_a)[:, None] & np.asarray(corr.valid_b)[None, :]
         return lambda_d * np.sum(c * visible) / np.sum((1 - c) * visible)
 
     paper = config_lib.paper().loss
-    cpu = config_lib.load(str(pathlib.Path(__file__).parents[1] / "experiments" / "paper_network.py")).loss
+    cpu = config_lib.load(
+        str(pathlib.Path(__file__).parents[1] / "experiments" / "paper_network.py")
+    ).loss
     at_paper_size = balance(240, 320, paper.lambda_d)
     assert 1 / 1.5 < balance(128, 160, cpu.lambda_d) / at_paper_size < 1.5
     assert balance(128, 160, paper.lambda_d) / at_paper_size > 3

@@ -14,8 +14,9 @@ from usp_jax.core.model import (
     relative_to_pixels,
 )
 
-SMALL = ModelConfig(backbone_channels=(8, 8, 8, 8, 16, 16, 16, 16), head_channels=16,
-                    descriptor_dim=8)
+SMALL = ModelConfig(
+    backbone_channels=(8, 8, 8, 8, 16, 16, 16, 16), head_channels=16, descriptor_dim=8
+)
 
 
 def apply(config, images):
@@ -53,12 +54,15 @@ def test_position_mapping_is_paper_eq1_in_pixel_centre_coordinates():
 def test_default_network_is_the_papers():
     variables = jax.eval_shape(init_variables, jax.random.PRNGKey(0))  # shapes, no compute
     kernels = [
-        leaf.shape for path, leaf in jax.tree_util.tree_leaves_with_path(variables["params"])
+        leaf.shape
+        for path, leaf in jax.tree_util.tree_leaves_with_path(variables["params"])
         if path[-1].key == "kernel"
     ]
     out_channels = sorted(k[-1] for k in kernels)
     # 8 backbone convs, 3 heads of (256 -> 256) + (256 -> 1 | 2 | 256).
-    assert sorted(out_channels) == sorted([32, 32, 64, 64, 128, 128, 256, 256] + [256] * 3 + [1, 2, 256])
+    assert sorted(out_channels) == sorted(
+        [32, 32, 64, 64, 128, 128, 256, 256] + [256] * 3 + [1, 2, 256]
+    )
     assert all(k[:2] == (3, 3) for k in kernels)
 
 
@@ -87,8 +91,9 @@ def test_bilinear_sampler_matches_scipy_including_borders():
 def test_sampling_at_cell_centres_returns_the_coarse_entries():
     fmap = np.random.default_rng(1).normal(size=(3, 4, 2)).astype(np.float32)
     xy = relative_to_pixels(jnp.full((12, 2), 0.5), 3, 4)
-    np.testing.assert_allclose(bilinear_sample(jnp.asarray(fmap), xy), fmap.reshape(12, 2),
-                               atol=1e-6)
+    np.testing.assert_allclose(
+        bilinear_sample(jnp.asarray(fmap), xy), fmap.reshape(12, 2), atol=1e-6
+    )
 
 
 def test_sampler_gradient_reaches_positions():
@@ -117,8 +122,9 @@ def test_bfloat16_compute_keeps_float32_outputs():
     assert pred.scores.dtype == jnp.float32 and pred.descriptors.dtype == jnp.float32
 
 
-SMALL_FAST = fast_config(backbone_channels=(4, 8, 8, 16), head_channels=8,
-                         descriptor_head_channels=8, descriptor_dim=8)
+SMALL_FAST = fast_config(
+    backbone_channels=(4, 8, 8, 16), head_channels=8, descriptor_head_channels=8, descriptor_dim=8
+)
 
 
 @pytest.mark.parametrize("height, width", [(32, 48), (40, 56)])  # even and odd cell grids
@@ -142,11 +148,12 @@ def test_fast_network_is_translation_equivariant_in_whole_cells_away_from_the_bo
 
     def inner(leaf, offset):
         grid = leaf.reshape(20, 24, -1)
-        return grid[margin + offset:20 - margin + offset, margin + offset:24 - margin + offset]
+        return grid[margin + offset : 20 - margin + offset, margin + offset : 24 - margin + offset]
 
     for name in ("scores", "relative", "descriptors"):
-        np.testing.assert_allclose(inner(getattr(a, name), 1), inner(getattr(b, name), 0),
-                                   atol=1e-5, err_msg=name)
+        np.testing.assert_allclose(
+            inner(getattr(a, name), 1), inner(getattr(b, name), 0), atol=1e-5, err_msg=name
+        )
 
 
 def test_fast_network_gradients_reach_every_parameter():
@@ -157,8 +164,9 @@ def test_fast_network_gradients_reach_every_parameter():
     @jax.jit
     def grads(params):
         def loss(params):
-            pred, _ = model.apply({**variables, "params": params}, images, train=True,
-                                  mutable=["batch_stats"])
+            pred, _ = model.apply(
+                {**variables, "params": params}, images, train=True, mutable=["batch_stats"]
+            )
             # Distinct weights per output, so that no BatchNorm'd sum is constant.
             weights = [jnp.linspace(-1.0, 2.0, leaf.size).reshape(leaf.shape) for leaf in pred]
             return sum(jnp.sum(w * leaf) for w, leaf in zip(weights, pred))
@@ -182,11 +190,14 @@ def test_fast_network_is_a_fraction_of_the_papers_parameters():
     assert count(fast_config()) < count(ModelConfig()) / 3
 
 
-@pytest.mark.parametrize("changes, message", [
-    ({"backbone": "resnet"}, "backbone must be one of vgg, fast"),
-    ({"backbone": "fast"}, "needs 4 entries"),
-    ({"backbone_channels": (8, 8, 8, 8)}, "needs 8 entries"),
-])
+@pytest.mark.parametrize(
+    "changes, message",
+    [
+        ({"backbone": "resnet"}, "backbone must be one of vgg, fast"),
+        ({"backbone": "fast"}, "needs 4 entries"),
+        ({"backbone_channels": (8, 8, 8, 8)}, "needs 8 entries"),
+    ],
+)
 def test_a_backbone_name_or_width_list_that_does_not_fit_is_a_clear_error(changes, message):
     with pytest.raises(ValueError, match=message):
         ModelConfig(**changes)

@@ -40,8 +40,9 @@ def read(path):
 def turn_of(homography):
     """In-plane rotation (degrees, cv2.getRotationMatrix2D's sign) of H's Jacobian at image 1's centre."""
     centre, step = np.array([(WIDTH - 1) / 2, (HEIGHT - 1) / 2]), 1e-2
-    moved = cv2.perspectiveTransform(np.array([[centre, centre + [step, 0], centre + [0, step]]]),
-                                     homography)[0]
+    moved = cv2.perspectiveTransform(
+        np.array([[centre, centre + [step, 0], centre + [0, step]]]), homography
+    )[0]
     jacobian = np.stack([moved[1] - moved[0], moved[2] - moved[0]], axis=1) / step
     return -np.degrees(np.arctan2(jacobian[1, 0] - jacobian[0, 1], jacobian[0, 0] + jacobian[1, 1]))
 
@@ -51,7 +52,9 @@ def assert_registered(scene, k):
     homography = np.loadtxt(scene / f"H_1_{k}")
     covered = cv2.warpPerspective(np.ones((HEIGHT, WIDTH), np.float32), homography, (WIDTH, HEIGHT))
     # Away from the edge of image 1's footprint, where bilinear weights mix in the black border.
-    inside = cv2.erode((covered >= 1 - 1e-6).astype(np.uint8), np.ones((5, 5), np.uint8)).astype(bool)
+    inside = cv2.erode((covered >= 1 - 1e-6).astype(np.uint8), np.ones((5, 5), np.uint8)).astype(
+        bool
+    )
     assert inside.mean() > 0.3
     warped = cv2.warpPerspective(read(scene / "1.ppm"), homography, (WIDTH, HEIGHT))
     error = np.abs(warped - read(scene / f"{k}.ppm"))[inside].mean()
@@ -61,10 +64,16 @@ def assert_registered(scene, k):
 
 
 def test_make_pairs_writes_hpatches_layout(scenes):
-    assert [scene.name for scene in scenes] == ["v_astronaut", "i_astronaut", "v_chelsea", "i_chelsea"]
+    assert [scene.name for scene in scenes] == [
+        "v_astronaut",
+        "i_astronaut",
+        "v_chelsea",
+        "i_chelsea",
+    ]
     for scene in scenes:
         assert sorted(p.name for p in scene.iterdir()) == (
-            [f"{k}.ppm" for k in range(1, 7)] + [f"H_1_{k}" for k in range(2, 7)])
+            [f"{k}.ppm" for k in range(1, 7)] + [f"H_1_{k}" for k in range(2, 7)]
+        )
         for k in range(1, 7):
             assert cv2.imread(str(scene / f"{k}.ppm")).shape == (HEIGHT, WIDTH, 3)
         for k in range(2, 7):
@@ -78,22 +87,32 @@ def test_viewpoint_homographies_register_image_1_onto_image_k(scenes):
         for k in range(2, 7):
             homography = np.loadtxt(scene / f"H_1_{k}")
             target = read(scene / f"{k}.ppm")
-            covered = cv2.warpPerspective(np.ones((HEIGHT, WIDTH), np.float32), homography, (WIDTH, HEIGHT))
+            covered = cv2.warpPerspective(
+                np.ones((HEIGHT, WIDTH), np.float32), homography, (WIDTH, HEIGHT)
+            )
             # Away from the edge of image 1's footprint, where bilinear weights mix in the black border.
-            inside = cv2.erode((covered >= 1 - 1e-6).astype(np.uint8), np.ones((5, 5), np.uint8)).astype(bool)
+            inside = cv2.erode(
+                (covered >= 1 - 1e-6).astype(np.uint8), np.ones((5, 5), np.uint8)
+            ).astype(bool)
             assert inside.mean() > 0.3
-            error = np.abs(cv2.warpPerspective(first, homography, (WIDTH, HEIGHT)) - target)[inside].mean()
+            error = np.abs(cv2.warpPerspective(first, homography, (WIDTH, HEIGHT)) - target)[
+                inside
+            ].mean()
             # Both images are resampled from the same photo: only interpolation differences remain.
             assert error < 0.03
             nudged = np.array([[1, 0, 1.5], [0, 1, 1.5], [0, 0, 1]]) @ homography
-            misregistered = np.abs(cv2.warpPerspective(first, nudged, (WIDTH, HEIGHT)) - target)[inside]
+            misregistered = np.abs(cv2.warpPerspective(first, nudged, (WIDTH, HEIGHT)) - target)[
+                inside
+            ]
             assert misregistered.mean() > 2 * error
             # The view is not image 1 itself: the homography is a real viewpoint change.
             assert np.abs(homography - np.eye(3)).max() > 0.05
 
 
 def test_views_have_no_black_borders(tmp_path):
-    bright = (100 + 0.6 * skimage.data.astronaut()).astype(np.uint8)  # no dark pixel in the photo itself
+    bright = (100 + 0.6 * skimage.data.astronaut()).astype(
+        np.uint8
+    )  # no dark pixel in the photo itself
     # Larger than needed, so it is only shrunk (INTER_AREA, which cannot undershoot like cubic enlarging).
     write_photo(tmp_path / "bright.png", bright, (200, 200))
     for scene in make_pairs(tmp_path, tmp_path / "out", size=(HEIGHT, WIDTH), kinds=("v",)):
@@ -124,7 +143,9 @@ def test_make_pairs_is_deterministic_for_a_seed(photos, scenes, tmp_path):
     assert [s.name for s in again] == ["v_astronaut", "v_chelsea"]
     for scene in again:
         for name in ("2.ppm", "H_1_2"):
-            assert (scene / name).read_bytes() == (scenes[0].parent / scene.name / name).read_bytes()
+            assert (scene / name).read_bytes() == (
+                scenes[0].parent / scene.name / name
+            ).read_bytes()
     assert not np.allclose(np.loadtxt(other[0] / "H_1_2"), np.loadtxt(again[0] / "H_1_2"))
 
 
@@ -140,7 +161,10 @@ def test_missing_or_empty_sources_raise_naming_them(tmp_path):
 
 def test_unreadable_only_sources_raise(tmp_path):
     (tmp_path / "bad.png").write_bytes(b"\x89PNG broken")
-    with pytest.warns(UserWarning, match="bad.png"), pytest.raises(FileNotFoundError, match="could be read"):
+    with (
+        pytest.warns(UserWarning, match="bad.png"),
+        pytest.raises(FileNotFoundError, match="could be read"),
+    ):
         make_pairs(tmp_path, tmp_path / "out")
     assert not (tmp_path / "out").exists()
 
@@ -166,8 +190,13 @@ ANGLES = [90.0, 180.0, -90.0, 45.0, 135.0]
 @pytest.fixture(scope="module")
 def rotated(photos, tmp_path_factory):
     with pytest.warns(UserWarning, match="broken.jpg"):
-        return make_pairs(photos, tmp_path_factory.mktemp("rotated"), size=(HEIGHT, WIDTH), kinds=("v",),
-                          rotation_angles=ANGLES)
+        return make_pairs(
+            photos,
+            tmp_path_factory.mktemp("rotated"),
+            size=(HEIGHT, WIDTH),
+            kinds=("v",),
+            rotation_angles=ANGLES,
+        )
 
 
 def test_rotated_pairs_register_image_1_onto_image_k_and_turn_by_the_listed_angles(rotated):
@@ -178,8 +207,10 @@ def test_rotated_pairs_register_image_1_onto_image_k_and_turn_by_the_listed_angl
         for k, turn in zip(range(2, 7), turns):
             homography, error, inside = assert_registered(scene, k)
             nudged = np.array([[1, 0, 1.5], [0, 1, 1.5], [0, 0, 1]]) @ homography
-            misregistered = np.abs(cv2.warpPerspective(read(scene / "1.ppm"), nudged, (WIDTH, HEIGHT))
-                                   - read(scene / f"{k}.ppm"))[inside]
+            misregistered = np.abs(
+                cv2.warpPerspective(read(scene / "1.ppm"), nudged, (WIDTH, HEIGHT))
+                - read(scene / f"{k}.ppm")
+            )[inside]
             assert misregistered.mean() > 2 * error
             # The listed angle, give or take the view's own rotation (up to 6 (k - 1) degrees) and the
             # keystone's effect on the Jacobian.
@@ -190,7 +221,9 @@ def test_rotated_pairs_register_image_1_onto_image_k_and_turn_by_the_listed_angl
 def test_rotated_views_have_no_black_borders(tmp_path):
     bright = (100 + 0.6 * skimage.data.astronaut()).astype(np.uint8)
     write_photo(tmp_path / "bright.png", bright, (300, 300))  # only shrunk, as in the upright test
-    for scene in make_pairs(tmp_path, tmp_path / "out", size=(HEIGHT, WIDTH), kinds=("v",), rotation=180):
+    for scene in make_pairs(
+        tmp_path, tmp_path / "out", size=(HEIGHT, WIDTH), kinds=("v",), rotation=180
+    ):
         for k in range(1, 7):
             assert cv2.imread(str(scene / f"{k}.ppm")).min() >= 99
         assert_registered(scene, 6)
@@ -208,12 +241,15 @@ def test_drawn_rotations_are_uniform_deterministic_and_listed_ones_serve_every_v
     assert all(sorted(column) == [0, 90, 180] for column in listed.T)
 
 
-@pytest.mark.parametrize("changes, message", [
-    (dict(rotation=90, rotation_angles=[0, 90]), "not both"),
-    (dict(rotation=200), r"\[0, 180\]"),
-    (dict(rotation_angles=[0, 270]), r"\[-180, 180\]"),
-    (dict(rotation_angles=[]), "one or more"),
-])
+@pytest.mark.parametrize(
+    "changes, message",
+    [
+        (dict(rotation=90, rotation_angles=[0, 90]), "not both"),
+        (dict(rotation=200), r"\[0, 180\]"),
+        (dict(rotation_angles=[0, 270]), r"\[-180, 180\]"),
+        (dict(rotation_angles=[]), "one or more"),
+    ],
+)
 def test_bad_rotations_are_rejected_before_writing(photos, tmp_path, changes, message):
     with pytest.raises(ValueError, match=message):
         make_pairs(photos, tmp_path / "out", **changes)

@@ -4,8 +4,7 @@ import cv2
 import numpy as np
 import skimage.data
 
-from usp_jax.evaluation import plotting
-from usp_jax.evaluation import Features, match_and_estimate, project_points
+from usp_jax.evaluation import Features, match_and_estimate, plotting, project_points
 
 HOMOGRAPHY = np.array([[1.0, 0.05, 3.0], [-0.02, 1.0, 2.0], [0.0, 0.0, 1.0]])
 
@@ -91,9 +90,17 @@ def test_plot_histograms_writes_png_of_fixed_size(tmp_path):
 def test_plot_training_curves_draws_logged_metrics_and_skips_missing_keys(tmp_path):
     rng = np.random.default_rng(0)
     rows = [
-        {"step": 10 * (i + 1), "loss/usp": 300 - i + rng.normal(), "loss/uni_xy": 100.0,
-         "loss/desc": 80.0, "usp/mean_d": 2.6 - 0.01 * i, "desc/sim_negative": 0.3}
+        {
+            "step": 10 * (i + 1),
+            "loss/usp": 300 - i + rng.normal(),
+            "loss/uni_xy": 100.0,
+            "loss/desc": 80.0,
+            "usp/mean_d": 2.6 - 0.01 * i,
+            "desc/sim_negative": 0.3,
+        }
         for i in range(40)
     ]
-    path = plotting.plot_training_curves(rows, tmp_path / "curves.png", smooth=5, stage_starts=[200])
+    path = plotting.plot_training_curves(
+        rows, tmp_path / "curves.png", smooth=5, stage_starts=[200]
+    )
     assert png_shape(path) == (round(7.0 * plotting.DPI), round(11.0 * plotting.DPI), 3)

@@ -10,19 +10,16 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from usp_jax.training import crops
+from usp_jax import config as config_lib
+from usp_jax.core import augment, geometry
+from usp_jax.core.model import ModelConfig
+from usp_jax.training import checkpoint, crops, data, train
 from usp_jax.training import metrics as metrics_lib
 from usp_jax.training import step as step_lib
-from usp_jax.core import augment
-from usp_jax.training import checkpoint
-from usp_jax.training import data
-from usp_jax.core import geometry
-from usp_jax.training import train
-from usp_jax import config as config_lib
-from usp_jax.core.model import ModelConfig
 
-SMALL_MODEL = ModelConfig(backbone_channels=(8, 8, 16, 16, 16, 16, 32, 32), head_channels=32,
-                          descriptor_dim=32)
+SMALL_MODEL = ModelConfig(
+    backbone_channels=(8, 8, 16, 16, 16, 16, 32, 32), head_channels=32, descriptor_dim=32
+)
 
 
 def tiny_config(**changes) -> config_lib.Config:
@@ -46,8 +43,12 @@ def mean_of(rows, key):
 
 
 def test_short_run_on_real_photos_lowers_the_loss(tmp_path):
-    cfg = tiny_config(num_steps=60, checkpoint_every=60, batch_size=4,
-                      **{"data.height": 64, "data.width": 96, "optim.learning_rate": 3e-3})
+    cfg = tiny_config(
+        num_steps=60,
+        checkpoint_every=60,
+        batch_size=4,
+        **{"data.height": 64, "data.width": 96, "optim.learning_rate": 3e-3},
+    )
     train.fit(cfg, tmp_path, progress=False)
     rows = metrics_lib.read_metrics(tmp_path)
     assert [r["step"] for r in rows] == list(range(1, 61))
@@ -63,11 +64,21 @@ def test_fitting_one_real_photo_pair_pulls_its_point_pairs_together(tmp_path, ph
     folder.mkdir()
     image = cv2.resize(photo, (96, 96), interpolation=cv2.INTER_AREA)[16:80]
     cv2.imwrite(str(folder / "a.png"), cv2.cvtColor(image, cv2.COLOR_RGB2BGR))
-    cfg = tiny_config(num_steps=60, checkpoint_every=60, **{
-        "data.source": str(folder), "data.height": 64, "data.width": 96,
-        "data.scale_range": "(1.0, 1.0)", "optim.learning_rate": 3e-3,
-        "homography.scaling": 0, "homography.max_angle": 0, "homography.perspective": 0,
-        "homography.translation": 0})
+    cfg = tiny_config(
+        num_steps=60,
+        checkpoint_every=60,
+        **{
+            "data.source": str(folder),
+            "data.height": 64,
+            "data.width": 96,
+            "data.scale_range": "(1.0, 1.0)",
+            "optim.learning_rate": 3e-3,
+            "homography.scaling": 0,
+            "homography.max_angle": 0,
+            "homography.perspective": 0,
+            "homography.translation": 0,
+        },
+    )
     train.fit(cfg, tmp_path / "run", progress=False)
     rows = metrics_lib.read_metrics(tmp_path / "run")
     # Measured: mean d_k 2.40 -> 0.87 px and K 50 -> 70 (first vs last 10 steps).
@@ -129,7 +140,9 @@ def test_a_save_killed_midway_resumes_from_the_last_complete_checkpoint(tmp_path
 def test_non_finite_loss_stops_with_a_message_and_keeps_the_last_good_checkpoint(tmp_path):
     train.fit(tiny_config(), tmp_path, progress=False, num_steps=2)
     exploding = tiny_config(**{"optim.learning_rate": 1e38})
-    with pytest.raises(metrics_lib.TrainingDiverged, match="non-finite at step .*checkpoint: step 2"):
+    with pytest.raises(
+        metrics_lib.TrainingDiverged, match="non-finite at step .*checkpoint: step 2"
+    ):
         train.fit(exploding, tmp_path, progress=False, num_steps=6, allow_config_change=True)
     mngr = checkpoint.manager(tmp_path / "checkpoints")
     assert mngr.latest_step() == 2
@@ -161,8 +174,9 @@ def test_init_weights_start_the_run_from_an_exported_model(tmp_path):
 def test_init_weights_of_another_network_is_a_clear_error(tmp_path):
     from usp_jax import inference
 
-    other = ModelConfig(backbone_channels=(4, 4, 8, 8, 8, 8, 16, 16), head_channels=16,
-                        descriptor_dim=16)
+    other = ModelConfig(
+        backbone_channels=(4, 4, 8, 8, 8, 8, 16, 16), head_channels=16, descriptor_dim=16
+    )
     weights = tmp_path / "other.npz"
     variables = step_lib.init_variables(jax.random.PRNGKey(0), other)
     inference.save_weights(weights, variables, other)
@@ -191,8 +205,12 @@ def test_init_weights_load_into_a_run_that_differs_only_in_settings_that_shape_n
     inference.save_weights(
         weights, {"params": source.params, "batch_stats": source.batch_stats}, SMALL_MODEL
     )
-    changes = {"init_weights": str(weights), "model.dtype": "bfloat16",
-               "model.batch_norm_momentum": 0.99, "model.position_init_scale": 1.0}
+    changes = {
+        "init_weights": str(weights),
+        "model.dtype": "bfloat16",
+        "model.batch_norm_momentum": 0.99,
+        "model.position_init_scale": 1.0,
+    }
     state = step_lib.create_state(tiny_config(**changes))
     for got, want in zip(params_of(state), params_of(source)):
         np.testing.assert_allclose(got, want, rtol=1e-3, atol=1e-4)
@@ -228,14 +246,21 @@ print(json.dumps({"devices": jax.device_count(), "losses": losses, "grad_norms":
 
 def run_on_devices(*counts):
     """DEVICE_SCRIPT's output for each device count, the processes run side by side."""
-    env = {**os.environ, "JAX_PLATFORMS": "cpu",
-           # The tests' compilation cache (conftest.py), so a rerun compiles nothing.
-           "JAX_COMPILATION_CACHE_DIR": jax.config.jax_compilation_cache_dir or "",
-           "JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS": "0.5"}
+    env = {
+        **os.environ,
+        "JAX_PLATFORMS": "cpu",
+        # The tests' compilation cache (conftest.py), so a rerun compiles nothing.
+        "JAX_COMPILATION_CACHE_DIR": jax.config.jax_compilation_cache_dir or "",
+        "JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS": "0.5",
+    }
     processes = [
-        subprocess.Popen([sys.executable, "-c", DEVICE_SCRIPT, str(n),
-                          str(pathlib.Path(__file__).parent)],
-                         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
+        subprocess.Popen(
+            [sys.executable, "-c", DEVICE_SCRIPT, str(n), str(pathlib.Path(__file__).parent)],
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+            env=env,
+        )
         for n in counts
     ]
     results = []
@@ -259,7 +284,9 @@ def test_four_devices_compute_what_one_device_computes():
 def test_collapse_warnings_name_the_collapse_and_its_fix():
     healthy = {"pred/score_std": 0.25, "pred/score_mean": 0.5, "desc/sim_negative": 0.2}
     assert metrics_lib.collapse_warnings(healthy) == {}
-    scores = metrics_lib.collapse_warnings({**healthy, "pred/score_std": 0.003, "pred/score_mean": 0.005})
+    scores = metrics_lib.collapse_warnings(
+        {**healthy, "pred/score_std": 0.003, "pred/score_mean": 0.005}
+    )
     assert list(scores) == ["scores"] and "alpha_score_mean" in scores["scores"]
     # Near-constant scores at 1/2 are how a run starts before positions are repeatable.
     assert metrics_lib.collapse_warnings({**healthy, "pred/score_std": 0.015}) == {}
@@ -272,7 +299,9 @@ def test_collapse_warnings_name_the_collapse_and_its_fix():
 def test_score_position_r2_is_one_for_a_ramp_and_small_for_content():
     grid = np.stack(np.meshgrid(np.arange(20.0), np.arange(15.0)), -1).reshape(1, -1, 2)
     ramp = 0.02 * grid[..., 0] + 0.05 * grid[..., 1]
-    assert float(step_lib.score_position_r2(jnp.asarray(ramp), jnp.asarray(grid))) == pytest.approx(1.0)
+    assert float(step_lib.score_position_r2(jnp.asarray(ramp), jnp.asarray(grid))) == pytest.approx(
+        1.0
+    )
     noise = np.random.default_rng(0).uniform(size=ramp.shape)
     assert float(step_lib.score_position_r2(jnp.asarray(noise), jnp.asarray(grid))) < 0.05
     # Matches NumPy's correlation coefficients.
@@ -283,8 +312,9 @@ def test_score_position_r2_is_one_for_a_ramp_and_small_for_content():
 
 
 # Identity photometric augmentation, so that branches can be compared with OpenCV pixel by pixel.
-NEUTRAL_LIGHT = augment.PhotometricConfig(brightness=0, contrast=0, saturation=0, noise_std=0,
-                                          blur_sigma=0)
+NEUTRAL_LIGHT = augment.PhotometricConfig(
+    brightness=0, contrast=0, saturation=0, noise_std=0, blur_sigma=0
+)
 
 
 @pytest.mark.parametrize("angle", [90.0, 180.0])
@@ -299,14 +329,25 @@ def test_window_branches_turn_b_by_the_sampled_homography_and_fill_it_from_the_w
     alpha[:12] = 0
     rgb = (rgb * alpha[..., None]).astype(np.float32)
     windows = jnp.asarray(np.concatenate([rgb, alpha[..., None]], -1)[None])
-    pure_turn = geometry.HomographyConfig(patch_ratio=1.0, scaling=0.0, perspective=0.0,
-                                          translation=0.0, rotation_range=(angle, angle))
-    images_a, images_b, homographies, valid = (np.asarray(x)[0] for x in step_lib.make_window_branches(
-        jax.random.PRNGKey(0), windows, 48, 64, pure_turn, NEUTRAL_LIGHT))
+    pure_turn = geometry.HomographyConfig(
+        patch_ratio=1.0,
+        scaling=0.0,
+        perspective=0.0,
+        translation=0.0,
+        rotation_range=(angle, angle),
+    )
+    images_a, images_b, homographies, valid = (
+        np.asarray(x)[0]
+        for x in step_lib.make_window_branches(
+            jax.random.PRNGKey(0), windows, 48, 64, pure_turn, NEUTRAL_LIGHT
+        )
+    )
 
     turn = np.vstack([cv2.getRotationMatrix2D((31.5, 23.5), angle, 1.0), [0, 0, 1]])
     np.testing.assert_allclose(homographies, turn, atol=1e-4)
-    np.testing.assert_allclose(images_a, rgb[origin_y:origin_y + 48, origin_x:origin_x + 64], atol=1e-6)
+    np.testing.assert_allclose(
+        images_a, rgb[origin_y : origin_y + 48, origin_x : origin_x + 64], atol=1e-6
+    )
     # B is the whole window seen through T after the crop's offset, as OpenCV renders it; its pixels
     # whose source is padding or outside the window are 0 and invalid.
     from_window = turn @ np.array([[1, 0, -origin_x], [0, 1, -origin_y], [0, 0, 1]])
@@ -317,8 +358,9 @@ def test_window_branches_turn_b_by_the_sampled_homography_and_fill_it_from_the_w
     assert (images_b[valid] > 0.05).all() and (images_b[~valid] == 0).all()
     # Valid pixels of B show real content from outside A too: what makes any angle possible.
     ys, xs = np.mgrid[0:48, 0:64]
-    source = cv2.perspectiveTransform(np.stack([xs, ys], -1).reshape(1, -1, 2).astype(np.float64),
-                                      np.linalg.inv(turn))[0].reshape(48, 64, 2)
+    source = cv2.perspectiveTransform(
+        np.stack([xs, ys], -1).reshape(1, -1, 2).astype(np.float64), np.linalg.inv(turn)
+    )[0].reshape(48, 64, 2)
     outside_a = (source < -0.5).any(-1) | (source[..., 0] > 63.5) | (source[..., 1] > 47.5)
     if angle == 90.0:
         assert (valid & outside_a).sum() >= 4 * 48 and (~valid).any()
@@ -328,17 +370,27 @@ def test_window_branches_turn_b_by_the_sampled_homography_and_fill_it_from_the_w
 
 def test_upright_branches_draw_what_they_drew_before_the_context_window_existed():
     homography = geometry.sample_homography(jax.random.PRNGKey(0), 48, 64)
-    np.testing.assert_allclose(homography, [[7.8681439e-01, 3.9201874e-01, -1.7099504e+01],
-                                            [-6.0852289e-01, 1.2928408e+00, 1.1539849e+01],
-                                            [-1.1136544e-02, 9.0182815e-03, 1.0]], rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(
+        homography,
+        [
+            [7.8681439e-01, 3.9201874e-01, -1.7099504e01],
+            [-6.0852289e-01, 1.2928408e00, 1.1539849e01],
+            [-1.1136544e-02, 9.0182815e-03, 1.0],
+        ],
+        rtol=1e-5,
+        atol=1e-6,
+    )
     images = jnp.asarray(np.random.default_rng(0).uniform(size=(2, 48, 64, 3)).astype(np.float32))
-    images_a, images_b, _ = step_lib.make_branches(jax.random.PRNGKey(1), images,
-                                                geometry.HomographyConfig(), augment.PhotometricConfig())
+    images_a, images_b, _ = step_lib.make_branches(
+        jax.random.PRNGKey(1), images, geometry.HomographyConfig(), augment.PhotometricConfig()
+    )
     assert float(images_a.sum()) == pytest.approx(10429.866, rel=1e-4)
     assert float(images_b.sum()) == pytest.approx(8377.0986, rel=1e-4)
 
 
-def test_a_rotation_range_without_context_windows_stops_the_run_before_it_writes_the_workdir(tmp_path):
+def test_a_rotation_range_without_context_windows_stops_the_run_before_it_writes_the_workdir(
+    tmp_path,
+):
     cfg = tiny_config(**{"homography.rotation_range": "(-180, 180)"})
     with pytest.raises(ValueError, match="data.context_window=True"):
         train.fit(cfg, tmp_path / "run", progress=False)
@@ -346,8 +398,9 @@ def test_a_rotation_range_without_context_windows_stops_the_run_before_it_writes
 
 
 def test_a_run_on_context_windows_trains_and_logs_how_much_of_b_is_real(tmp_path):
-    cfg = tiny_config(num_steps=2, **{"data.context_window": True,
-                                      "homography.rotation_range": "(-180, 180)"})
+    cfg = tiny_config(
+        num_steps=2, **{"data.context_window": True, "homography.rotation_range": "(-180, 180)"}
+    )
     train.fit(cfg, tmp_path, progress=False)
     rows = metrics_lib.read_metrics(tmp_path)
     assert [r["step"] for r in rows] == [1, 2]

@@ -27,10 +27,22 @@ from usp_jax.inference.detector import MAX_SIDE
 
 _USER_ERRORS = (FileNotFoundError, ValueError, NotADirectoryError, IsADirectoryError)
 # OSErrors a user's paths or disk cause: reported in one line like the errors above.
-_USER_ERRNOS = frozenset({
-    errno.ENOENT, errno.EACCES, errno.EPERM, errno.EROFS, errno.ENOSPC, errno.EDQUOT,
-    errno.EEXIST, errno.ENOTDIR, errno.EISDIR, errno.ENAMETOOLONG, errno.EFBIG, errno.ELOOP,
-})
+_USER_ERRNOS = frozenset(
+    {
+        errno.ENOENT,
+        errno.EACCES,
+        errno.EPERM,
+        errno.EROFS,
+        errno.ENOSPC,
+        errno.EDQUOT,
+        errno.EEXIST,
+        errno.ENOTDIR,
+        errno.EISDIR,
+        errno.ENAMETOOLONG,
+        errno.EFBIG,
+        errno.ELOOP,
+    }
+)
 # The largest --upsample and --res side: beyond, the activations alone outgrow any memory.
 MAX_UPSAMPLE = 8
 
@@ -90,22 +102,33 @@ _non_negative = _integer_at_least(0, "non-negative")
 
 def _add_upsample(parser) -> None:
     # SIFT doubles its input for the same reason: the positions come back finer (RESULTS.md).
-    parser.add_argument("--upsample", type=_upsample, default=1, metavar="S",
-                        help="run the network on the image enlarged S times (default 1, the"
-                             " paper's detector; 2: finer keypoints for 4x the compute)")
+    parser.add_argument(
+        "--upsample",
+        type=_upsample,
+        default=1,
+        metavar="S",
+        help="run the network on the image enlarged S times (default 1, the"
+        " paper's detector; 2: finer keypoints for 4x the compute)",
+    )
 
 
 def _add_weights_name(parser) -> None:
-    parser.add_argument("--weights", metavar="NAME",
-                        help="shipped weights by name (usp_jax.inference.PRETRAINED; an unknown"
-                             " name lists them); default: the best on the held-out pairs")
+    parser.add_argument(
+        "--weights",
+        metavar="NAME",
+        help="shipped weights by name (usp_jax.inference.PRETRAINED; an unknown"
+        " name lists them); default: the best on the held-out pairs",
+    )
 
 
 def _add_checkpoint(parser) -> None:
     group = parser.add_mutually_exclusive_group()
-    group.add_argument("--checkpoint", metavar="PATH",
-                       help="training workdir, one of its checkpoints, or a .npz weights file"
-                            " from `usp-jax export --save-weights` (default: the shipped weights)")
+    group.add_argument(
+        "--checkpoint",
+        metavar="PATH",
+        help="training workdir, one of its checkpoints, or a .npz weights file"
+        " from `usp-jax export --save-weights` (default: the shipped weights)",
+    )
     _add_weights_name(group)
 
 
@@ -119,7 +142,9 @@ def _check_output_file(path: str | None, what: str) -> None:
     parent = target.absolute().parent
     if not parent.is_dir():
         raise ValueError(f"{what} {path}: folder {parent} does not exist")
-    if not os.access(parent, os.W_OK | os.X_OK) or (target.exists() and not os.access(target, os.W_OK)):
+    if not os.access(parent, os.W_OK | os.X_OK) or (
+        target.exists() and not os.access(target, os.W_OK)
+    ):
         raise ValueError(f"{what} {path} is not writable")
 
 
@@ -155,8 +180,11 @@ def cmd_train(args) -> None:
     cfg = config_lib.override(cfg, overrides)
     # --steps N is num_steps=N; both at once must agree (neither silently beats the other).
     if args.steps is not None:
-        given = [o.split("=", 1)[1].strip() for o in overrides
-                 if o.split("=", 1)[0].strip() == "num_steps"]
+        given = [
+            o.split("=", 1)[1].strip()
+            for o in overrides
+            if o.split("=", 1)[0].strip() == "num_steps"
+        ]
         if given and cfg.num_steps != args.steps:
             raise ValueError(
                 f"--steps {args.steps} and num_steps={given[-1]} disagree; give one of them"
@@ -168,20 +196,31 @@ def cmd_train(args) -> None:
 
         # Everything a process can check alone is checked before it waits for the others.
         check_config(cfg)
-        launch = distributed.Launch(args.coordinator, args.num_processes, args.process_id,
-                                    args.init_timeout, args.heartbeat_timeout)
+        launch = distributed.Launch(
+            args.coordinator,
+            args.num_processes,
+            args.process_id,
+            args.init_timeout,
+            args.heartbeat_timeout,
+        )
         distributed.check_launch(launch, cfg.batch_size)
         distributed.initialize(launch, report=lambda line: _user_error("train", line))
         import jax
 
         who = f"process {jax.process_index()} of {jax.process_count()}: "
     print(f"{who}training {args.config} config on {cfg.data.source} into {args.workdir}")
-    state = train.fit(cfg, args.workdir, progress=not args.no_progress,
-                      allow_config_change=args.allow_config_change)
+    state = train.fit(
+        cfg,
+        args.workdir,
+        progress=not args.no_progress,
+        allow_config_change=args.allow_config_change,
+    )
     step, checkpoints = int(state.step), pathlib.Path(args.workdir) / "checkpoints"
     if step < cfg.num_steps:  # a multi-process run stopped together on SIGTERM
-        print(f"{who}stopped at step {step} of {cfg.num_steps} on SIGTERM, checkpoint saved in"
-              f" {checkpoints}; rerun the same command to resume")
+        print(
+            f"{who}stopped at step {step} of {cfg.num_steps} on SIGTERM, checkpoint saved in"
+            f" {checkpoints}; rerun the same command to resume"
+        )
         return 128 + signal.SIGTERM  # as if SIGTERM had ended it: the run is not finished
     print(f"{who}done: step {step}; checkpoints in {checkpoints}")
     return 0
@@ -204,7 +243,12 @@ def cmd_evaluate(args) -> None:
     baselines = [name.strip() for name in args.baselines.split(",") if name.strip()]
     methods = protocol.methods(detector, baselines, args.top)
     results = protocol.evaluate(
-        methods, args.hpatches, height=height, width=width, top_k=args.top, nms=args.nms,
+        methods,
+        args.hpatches,
+        height=height,
+        width=width,
+        top_k=args.top,
+        nms=args.nms,
         progress=not args.no_progress,
     )
     enlarged = f", model on {args.upsample}x enlarged images" if args.upsample > 1 else ""
@@ -214,8 +258,9 @@ def cmd_evaluate(args) -> None:
         pathlib.Path(args.json).write_text(json.dumps(protocol.to_json(results), indent=1))
         print(f"wrote {args.json}")
     if args.plots and methods:
-        path = plotting.plot_example_pair(methods[0], args.hpatches, args.plots, args.res,
-                                          args.top, args.nms)
+        path = plotting.plot_example_pair(
+            methods[0], args.hpatches, args.plots, args.res, args.top, args.nms
+        )
         print(f"wrote {path}")
 
 
@@ -223,9 +268,16 @@ def cmd_make_pairs(args) -> None:
     from usp_jax.evaluation.pairs import make_pairs
 
     _check_output_folder(args.out, "--out")
-    scenes = make_pairs(args.images, args.out, seed=args.seed, size=args.size,
-                        num_views=args.views, rotation=args.rotation,
-                        rotation_angles=args.rotation_angles, progress=not args.no_progress)
+    scenes = make_pairs(
+        args.images,
+        args.out,
+        seed=args.seed,
+        size=args.size,
+        num_views=args.views,
+        rotation=args.rotation,
+        rotation_angles=args.rotation_angles,
+        progress=not args.no_progress,
+    )
     print(f"wrote {len(scenes)} scenes to {args.out}")
 
 
@@ -240,8 +292,12 @@ def cmd_benchmark(args) -> None:
     else:  # every shipped network, side by side
         detector = {name: Detector.pretrained(name, upsample=args.upsample) for name in PRETRAINED}
     result = benchmark.benchmark(
-        detector, resolutions=tuple(args.res), batch_sizes=tuple(args.batch), top_n=args.top,
-        repeats=args.repeats, include_opencv=not args.no_opencv,
+        detector,
+        resolutions=tuple(args.res),
+        batch_sizes=tuple(args.batch),
+        top_n=args.top,
+        repeats=args.repeats,
+        include_opencv=not args.no_opencv,
     )
     print(benchmark.format_benchmark(result))
     if args.json:
@@ -262,10 +318,15 @@ def cmd_detect(args) -> None:
         plotting.plot_keypoints(image, features.keypoints, image, features.keypoints, args.out)
         print(f"wrote {args.out}")
     if args.json:
-        pathlib.Path(args.json).write_text(json.dumps({
-            "keypoints": features.keypoints.tolist(), "scores": features.scores.tolist(),
-            "descriptors": features.descriptors.tolist(),
-        }))
+        pathlib.Path(args.json).write_text(
+            json.dumps(
+                {
+                    "keypoints": features.keypoints.tolist(),
+                    "scores": features.scores.tolist(),
+                    "descriptors": features.descriptors.tolist(),
+                }
+            )
+        )
         print(f"wrote {args.json}")
 
 
@@ -293,17 +354,30 @@ def cmd_match(args) -> None:
         print(np.array2string(matching.homography, precision=6, suppress_small=True))
     if args.out:
         plotting.plot_matches(
-            image1, image2, features1.keypoints, features2.keypoints, matching.matches,
-            matching.inliers, None, matching.homography, args.out,
+            image1,
+            image2,
+            features1.keypoints,
+            features2.keypoints,
+            matching.matches,
+            matching.inliers,
+            None,
+            matching.homography,
+            args.out,
         )
         print(f"wrote {args.out}")
     if args.json:
         homography = None if matching.homography is None else matching.homography.tolist()
-        pathlib.Path(args.json).write_text(json.dumps({
-            "homography": homography,
-            "matches": matching.matches.tolist(), "inliers": matching.inliers.tolist(),
-            "keypoints1": features1.keypoints.tolist(), "keypoints2": features2.keypoints.tolist(),
-        }))
+        pathlib.Path(args.json).write_text(
+            json.dumps(
+                {
+                    "homography": homography,
+                    "matches": matching.matches.tolist(),
+                    "inliers": matching.inliers.tolist(),
+                    "keypoints1": features1.keypoints.tolist(),
+                    "keypoints2": features2.keypoints.tolist(),
+                }
+            )
+        )
         print(f"wrote {args.json}")
 
 
@@ -320,8 +394,13 @@ def cmd_export(args) -> None:
         weights.save_weights(args.save_weights, detector.variables, detector.model_config)
         print(f"wrote {args.save_weights} (float16)")
     if args.artifact:
-        detector = Detector(detector.variables, detector.model_config, top_n=args.top,
-                            nms_radius=args.nms, upsample=detector.upsample)
+        detector = Detector(
+            detector.variables,
+            detector.model_config,
+            top_n=args.top,
+            nms_radius=args.nms,
+            upsample=detector.upsample,
+        )
         export.export(detector, args.artifact, *args.res)
         print(f"wrote {args.artifact} (jax.export, uint8 [b, {args.res[0]}, {args.res[1]}, 3])")
 
@@ -350,33 +429,68 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("train", help="self-supervised training (resumes an existing workdir)")
     p.add_argument("--data", help="image folder, tfds:NAME[:SPLIT], or 'sample' (bundled photos)")
-    p.add_argument("--workdir", required=True, help="checkpoints, config.json, metrics, TensorBoard")
+    p.add_argument(
+        "--workdir", required=True, help="checkpoints, config.json, metrics, TensorBoard"
+    )
     p.add_argument("--config", default="paper", help="preset (paper, cpu) or experiments/*.py file")
-    p.add_argument("--steps", type=_positive,
-                   help="train up to this step (num_steps=N; giving both, they must agree)")
+    p.add_argument(
+        "--steps",
+        type=_positive,
+        help="train up to this step (num_steps=N; giving both, they must agree)",
+    )
     p.add_argument("--init", help="start from these weights (.npz from `usp-jax export`)")
-    p.add_argument("--distributed", action="store_true",
-                   help="join a multi-process run (one process per host or accelerator); the"
-                        " cluster is detected as JAX does (SLURM, Open MPI, Cloud TPU,"
-                        " Kubernetes) unless the three options below are given")
-    p.add_argument("--coordinator", metavar="HOST:PORT",
-                   help="address of process 0, which runs the coordination service (implies"
-                        " --distributed)")
-    p.add_argument("--num-processes", type=_positive, metavar="N",
-                   help="processes in the run (implies --distributed)")
-    p.add_argument("--process-id", type=_non_negative, metavar="I",
-                   help="this process's index, 0 to N-1 (implies --distributed)")
-    p.add_argument("--init-timeout", type=_positive, default=300, metavar="S",
-                   help="seconds to wait for every process to join before giving up (default 300)")
-    p.add_argument("--heartbeat-timeout", type=_positive, default=100, metavar="S",
-                   help="seconds of silence after which a process counts as dead (default 100)")
-    p.add_argument("--allow-config-change", action="store_true",
-                   help="resume a workdir although settings differ from its config.json (the"
-                        " change is logged to config_changes.jsonl); without it such a resume"
-                        " is refused, naming the keys")
+    p.add_argument(
+        "--distributed",
+        action="store_true",
+        help="join a multi-process run (one process per host or accelerator); the"
+        " cluster is detected as JAX does (SLURM, Open MPI, Cloud TPU,"
+        " Kubernetes) unless the three options below are given",
+    )
+    p.add_argument(
+        "--coordinator",
+        metavar="HOST:PORT",
+        help="address of process 0, which runs the coordination service (implies --distributed)",
+    )
+    p.add_argument(
+        "--num-processes",
+        type=_positive,
+        metavar="N",
+        help="processes in the run (implies --distributed)",
+    )
+    p.add_argument(
+        "--process-id",
+        type=_non_negative,
+        metavar="I",
+        help="this process's index, 0 to N-1 (implies --distributed)",
+    )
+    p.add_argument(
+        "--init-timeout",
+        type=_positive,
+        default=300,
+        metavar="S",
+        help="seconds to wait for every process to join before giving up (default 300)",
+    )
+    p.add_argument(
+        "--heartbeat-timeout",
+        type=_positive,
+        default=100,
+        metavar="S",
+        help="seconds of silence after which a process counts as dead (default 100)",
+    )
+    p.add_argument(
+        "--allow-config-change",
+        action="store_true",
+        help="resume a workdir although settings differ from its config.json (the"
+        " change is logged to config_changes.jsonl); without it such a resume"
+        " is refused, naming the keys",
+    )
     p.add_argument("--no-progress", action="store_true")
-    p.add_argument("overrides", nargs="*", metavar="KEY=VALUE",
-                   help="config overrides, e.g. loss.alpha_uni_xy=50 data.height=120")
+    p.add_argument(
+        "overrides",
+        nargs="*",
+        metavar="KEY=VALUE",
+        help="config overrides, e.g. loss.alpha_uni_xy=50 data.height=120",
+    )
     p.set_defaults(func=cmd_train)
 
     p = sub.add_parser("evaluate", help="HPatches/Oxford metrics vs OpenCV baselines")
@@ -400,12 +514,20 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--views", type=_positive, default=6)
     p.add_argument("--seed", type=int, default=0)
     turn = p.add_mutually_exclusive_group()
-    turn.add_argument("--rotation", type=float, metavar="DEG",
-                      help="also turn every viewpoint pair by an angle drawn uniformly from [-DEG, DEG]"
-                           " (0 to 180; 180: the full circle), positive counter-clockwise")
-    turn.add_argument("--rotation-angles", type=float, nargs="+", metavar="DEG",
-                      help="the same with fixed angles in [-180, 180], used in turn, e.g."
-                           " 0 45 90 135 180")
+    turn.add_argument(
+        "--rotation",
+        type=float,
+        metavar="DEG",
+        help="also turn every viewpoint pair by an angle drawn uniformly from [-DEG, DEG]"
+        " (0 to 180; 180: the full circle), positive counter-clockwise",
+    )
+    turn.add_argument(
+        "--rotation-angles",
+        type=float,
+        nargs="+",
+        metavar="DEG",
+        help="the same with fixed angles in [-180, 180], used in turn, e.g. 0 45 90 135 180",
+    )
     p.add_argument("--no-progress", action="store_true")
     p.set_defaults(func=cmd_make_pairs)
 
@@ -413,7 +535,9 @@ def build_parser() -> argparse.ArgumentParser:
     _add_checkpoint(p)
     p.add_argument("--res", type=_resolution, nargs="+", default=[(240, 320), (480, 640)])
     p.add_argument("--batch", type=_positive, nargs="+", default=[1, 10])
-    p.add_argument("--top", type=_positive, help="points kept (default: 300 up to 240x320, else 1000)")
+    p.add_argument(
+        "--top", type=_positive, help="points kept (default: 300 up to 240x320, else 1000)"
+    )
     p.add_argument("--repeats", type=_positive, default=10)
     p.add_argument("--no-opencv", action="store_true")
     p.add_argument("--json")
@@ -426,11 +550,20 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--top", type=_positive, default=500)
     # Spread points condition a homography or pose better: radius 4 cut the corner error of
     # the held-out viewpoint pairs by a third (experiments/RESULTS.md).
-    p.add_argument("--nms", type=_radius, default=0.0,
-                   help="NMS radius in px, default 0 (try 4 for homography or pose estimation)")
-    p.add_argument("--max-side", type=_non_negative, default=MAX_SIDE, metavar="PX",
-                   help=f"detect on a copy at most this long (default {MAX_SIDE}; 0: native size);"
-                        " keypoints are in the original's pixels")
+    p.add_argument(
+        "--nms",
+        type=_radius,
+        default=0.0,
+        help="NMS radius in px, default 0 (try 4 for homography or pose estimation)",
+    )
+    p.add_argument(
+        "--max-side",
+        type=_non_negative,
+        default=MAX_SIDE,
+        metavar="PX",
+        help=f"detect on a copy at most this long (default {MAX_SIDE}; 0: native size);"
+        " keypoints are in the original's pixels",
+    )
     p.add_argument("--out", help="PNG with the keypoints drawn")
     p.add_argument("--json", help="keypoints, scores and descriptors as JSON")
     _add_upsample(p)
@@ -441,10 +574,19 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("image2")
     _add_checkpoint(p)
     p.add_argument("--top", type=_positive, default=1000)
-    p.add_argument("--nms", type=_radius, default=4.0,
-                   help="NMS radius in px, default 4 (spread points condition a homography better)")
-    p.add_argument("--max-side", type=_non_negative, default=MAX_SIDE, metavar="PX",
-                   help=f"detect on copies at most this long (default {MAX_SIDE}; 0: native size)")
+    p.add_argument(
+        "--nms",
+        type=_radius,
+        default=4.0,
+        help="NMS radius in px, default 4 (spread points condition a homography better)",
+    )
+    p.add_argument(
+        "--max-side",
+        type=_non_negative,
+        default=MAX_SIDE,
+        metavar="PX",
+        help=f"detect on copies at most this long (default {MAX_SIDE}; 0: native size)",
+    )
     p.add_argument("--out", help="PNG of the inlier matches and image 1's border warped by H")
     p.add_argument("--json", help="homography, matches, inlier mask and keypoints as JSON")
     _add_upsample(p)
@@ -452,9 +594,11 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("export", help="float16 weights file or a jax.export inference artifact")
     _add_checkpoint(p)
-    p.add_argument("--save-weights", metavar="FILE",
-                   help="write a float16 .npz (what --checkpoint, train --init and"
-                        " Detector.load take)")
+    p.add_argument(
+        "--save-weights",
+        metavar="FILE",
+        help="write a float16 .npz (what --checkpoint, train --init and Detector.load take)",
+    )
     p.add_argument("--artifact", help="write a serialised jax.export detector")
     p.add_argument("--res", type=_resolution, default=(240, 320), help="artifact input HxW")
     p.add_argument("--top", type=_positive, default=1000, help="artifact keeps this many points")
@@ -463,8 +607,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=cmd_export)
 
     p = sub.add_parser("demo", help="the whole pipeline on bundled photos, offline, in minutes")
-    p.add_argument("--out", default=str(pathlib.Path(tempfile.gettempdir()) / "usp-jax-demo"),
-                   help="folder for the pairs and PNGs")
+    p.add_argument(
+        "--out",
+        default=str(pathlib.Path(tempfile.gettempdir()) / "usp-jax-demo"),
+        help="folder for the pairs and PNGs",
+    )
     _add_weights_name(p)
     p.set_defaults(func=cmd_demo)
     return parser
@@ -476,8 +623,10 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     args, extra = parser.parse_known_args(argv)
     # argparse fills the overrides from the first run of positionals only, so in
     # `train a=1 --workdir W b=2` it leaves `b=2` over; anything else left over is a typo.
-    if extra and args.command == "train" and all(
-        "=" in arg and not arg.startswith("-") for arg in extra
+    if (
+        extra
+        and args.command == "train"
+        and all("=" in arg and not arg.startswith("-") for arg in extra)
     ):
         args.overrides += extra
     elif extra:
@@ -513,8 +662,9 @@ def _main(argv: list[str] | None) -> int:
     # force: importing orbax and grain (through usp_jax) installs a root handler, which would
     # make basicConfig a no-op and -v silent. -v is about usp-jax's own steps; the libraries'
     # INFO lines (orbax logs every save) stay hidden.
-    logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s",
-                        force=True)
+    logging.basicConfig(
+        level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s", force=True
+    )
     logging.getLogger("usp_jax").setLevel(logging.INFO if args.verbose else logging.WARNING)
     # Orbax logs a failed background save (a full disk) as ERRORs with tracebacks from each of
     # its threads; train reports it again as one line naming the last complete checkpoint.
@@ -528,7 +678,8 @@ def _main(argv: list[str] | None) -> int:
         code, message = _classify(err)
         if distributed.joined():  # a multi-process run ends in every process
             own = message or (
-                f"{type(err).__name__}: {distributed.first_line(err)} (its traceback is in its log)")
+                f"{type(err).__name__}: {distributed.first_line(err)} (its traceback is in its log)"
+            )
 
             def show(text: str) -> None:
                 if text != own:  # another process failed first: its error, not the broken link
@@ -567,4 +718,3 @@ def _show(command: str, code: int, message: str) -> None:
         print(f"usp-jax {command}: {message}", file=sys.stderr)
     else:
         _user_error(command, message)
-

@@ -24,7 +24,9 @@ DEMO_PHOTOS = ("coffee.png", "chelsea.png", "rocket.jpg")
 DEFAULT_OUT = pathlib.Path(tempfile.gettempdir()) / "usp-jax-demo"
 
 
-def demo(out: str | pathlib.Path = DEFAULT_OUT, weights_name: str | None = None) -> protocol.Results:
+def demo(
+    out: str | pathlib.Path = DEFAULT_OUT, weights_name: str | None = None
+) -> protocol.Results:
     """Runs the demo into ``out`` (pairs, PNGs; ``out/train`` if it has to train) and prints the
     evaluation table; returns its results. ``weights_name``: shipped weights by name (None: the
     default); a named one that is missing is an error, not a reason to train."""
@@ -41,15 +43,22 @@ def demo(out: str | pathlib.Path = DEFAULT_OUT, weights_name: str | None = None)
             raise
         detector = _short_training(out / "train")
         about = "photos the short training saw too (no shipped weights)"
-    photos = {path.name: path for distribution, path in sample_photos()
-              if distribution == "scikit-image"}
+    photos = {
+        path.name: path for distribution, path in sample_photos() if distribution == "scikit-image"
+    }
     print("[2/3] building HPatches-layout pairs from the bundled photos", file=sys.stderr)
-    make_pairs([photos[name] for name in DEMO_PHOTOS], out / "pairs", seed=0, size=(480, 640),
-               progress=True)
+    make_pairs(
+        [photos[name] for name in DEMO_PHOTOS],
+        out / "pairs",
+        seed=0,
+        size=(480, 640),
+        progress=True,
+    )
     print("[3/3] evaluating against ORB and SIFT", file=sys.stderr)
     methods = protocol.methods(detector, ("orb", "sift"), top_k=300)
-    results = protocol.evaluate(methods, out / "pairs", height=240, width=320, top_k=300, nms=0,
-                                progress=True)
+    results = protocol.evaluate(
+        methods, out / "pairs", height=240, width=320, top_k=300, nms=0, progress=True
+    )
     print(f"\n240x320, top 300 points, pairs made from {about}")
     print(protocol.format_table(results))
     matches = plotting.plot_example_pair(methods[0], out / "pairs", out, (240, 320), 300, 0)

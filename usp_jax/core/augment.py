@@ -56,13 +56,17 @@ class PhotometricConfig:
     def __post_init__(self):
         for name in ("brightness", "contrast", "saturation"):
             if not 0.0 <= getattr(self, name) <= 1.0:
-                raise ValueError(f"PhotometricConfig.{name}={getattr(self, name)!r} must lie in [0, 1]")
+                raise ValueError(
+                    f"PhotometricConfig.{name}={getattr(self, name)!r} must lie in [0, 1]"
+                )
         for name in ("gamma", "noise_std", "blur_sigma"):
             if getattr(self, name) < 0.0:
                 raise ValueError(f"PhotometricConfig.{name}={getattr(self, name)!r} must be >= 0")
         for name in ("p_gamma", "p_brightness", "p_contrast", "p_saturation", "p_noise", "p_blur"):
             if not 0.0 <= getattr(self, name) <= 1.0:
-                raise ValueError(f"PhotometricConfig.{name}={getattr(self, name)!r} is not a probability")
+                raise ValueError(
+                    f"PhotometricConfig.{name}={getattr(self, name)!r} is not a probability"
+                )
 
     @property
     def blur_radius(self) -> int:
@@ -84,12 +88,13 @@ def gaussian_blur(image: jax.Array, sigma: jax.Array, radius: int) -> jax.Array:
     padded = jnp.pad(image, ((radius, radius), (radius, radius), (0, 0)), mode="reflect")
     # Weighted sums of shifted views, rows then columns: XLA fuses each into one pass, where a
     # depthwise convolution (a few taps, 3 channels) runs an order of magnitude slower on CPU.
-    rows = sum(weights[k] * padded[k:k + height] for k in range(2 * radius + 1))
-    return sum(weights[k] * rows[:, k:k + width] for k in range(2 * radius + 1))
+    rows = sum(weights[k] * padded[k : k + height] for k in range(2 * radius + 1))
+    return sum(weights[k] * rows[:, k : k + width] for k in range(2 * radius + 1))
 
 
-def photometric_augment(key: jax.Array, image: jax.Array,
-                        config: PhotometricConfig = PhotometricConfig()) -> jax.Array:
+def photometric_augment(
+    key: jax.Array, image: jax.Array, config: PhotometricConfig = PhotometricConfig()
+) -> jax.Array:
     """Random gamma, brightness, contrast, saturation, blur and noise, in that order, then clipping to [0, 1].
 
     The response curve and colour changes come first and sensor noise last, the order in which they
@@ -105,7 +110,9 @@ def photometric_augment(key: jax.Array, image: jax.Array,
     """
     image = jnp.asarray(image, jnp.float32)
     if image.ndim != 3 or image.shape[-1] != 3:
-        raise ValueError(f"photometric_augment expects an [H, W, 3] image, got shape {tuple(image.shape)}")
+        raise ValueError(
+            f"photometric_augment expects an [H, W, 3] image, got shape {tuple(image.shape)}"
+        )
     keys = iter(jax.random.split(key, 6))
 
     def draw(low: float, high: float, probability: float, neutral: float) -> jax.Array:

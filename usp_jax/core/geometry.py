@@ -89,14 +89,20 @@ class HomographyConfig:
             try:
                 low, high = (float(v) for v in self.rotation_range)
             except (TypeError, ValueError):
-                raise ValueError(f"HomographyConfig.rotation_range={self.rotation_range!r} must be "
-                                 "(low, high) in degrees, or None") from None
+                raise ValueError(
+                    f"HomographyConfig.rotation_range={self.rotation_range!r} must be "
+                    "(low, high) in degrees, or None"
+                ) from None
             if not -360.0 <= low <= high <= 360.0:
-                raise ValueError(f"HomographyConfig.rotation_range={self.rotation_range!r} must satisfy "
-                                 "-360 <= low <= high <= 360 (degrees)")
+                raise ValueError(
+                    f"HomographyConfig.rotation_range={self.rotation_range!r} must satisfy "
+                    "-360 <= low <= high <= 360 (degrees)"
+                )
         if self.rotation_distribution not in ROTATION_DISTRIBUTIONS:
-            raise ValueError(f"HomographyConfig.rotation_distribution={self.rotation_distribution!r} must "
-                             f"be one of {', '.join(ROTATION_DISTRIBUTIONS)}")
+            raise ValueError(
+                f"HomographyConfig.rotation_distribution={self.rotation_distribution!r} must "
+                f"be one of {', '.join(ROTATION_DISTRIBUTIONS)}"
+            )
 
 
 def _normalise(homography: jax.Array) -> jax.Array:
@@ -146,13 +152,15 @@ def points_inside(xy: jax.Array, height: int, width: int, border: float = 0) -> 
 
 def _pixel_grid(height: int, width: int) -> jax.Array:
     """(x, y) coordinates of every pixel centre, float32 [height, width, 2]."""
-    ys, xs = jnp.meshgrid(jnp.arange(height, dtype=jnp.float32), jnp.arange(width, dtype=jnp.float32),
-                          indexing="ij")
+    ys, xs = jnp.meshgrid(
+        jnp.arange(height, dtype=jnp.float32), jnp.arange(width, dtype=jnp.float32), indexing="ij"
+    )
     return jnp.stack([xs, ys], axis=-1)
 
 
-def warp_image(image: jax.Array, homography: jax.Array,
-               out_shape: tuple[int, int] | None = None) -> tuple[jax.Array, jax.Array]:
+def warp_image(
+    image: jax.Array, homography: jax.Array, out_shape: tuple[int, int] | None = None
+) -> tuple[jax.Array, jax.Array]:
     """Renders image 2 = image warped by `homography` (image 1 -> image 2), bilinearly.
 
     Equals cv2.warpPerspective(image, H, (w, h), flags=INTER_LINEAR, borderMode=BORDER_CONSTANT,
@@ -174,7 +182,9 @@ def warp_image(image: jax.Array, homography: jax.Array,
     height, width = out_shape if out_shape is not None else image.shape[:2]
     source_xy = warp_points(invert_homography(homography), _pixel_grid(height, width))
     coordinates = [source_xy[..., 1], source_xy[..., 0]]  # map_coordinates indexes (row, column)
-    sample = functools.partial(map_coordinates, coordinates=coordinates, order=1, mode="constant", cval=0.0)
+    sample = functools.partial(
+        map_coordinates, coordinates=coordinates, order=1, mode="constant", cval=0.0
+    )
     warped = jax.vmap(sample, in_axes=2, out_axes=2)(image)
     return warped, points_inside(source_xy, image.shape[0], image.shape[1])
 
@@ -197,13 +207,18 @@ def _unit_square_to_quad(quad: jax.Array) -> jax.Array:
     det = dx1 * dy2 - dx2 * dy1
     g = (sx * dy2 - dx2 * sy) / det
     h = (dx1 * sy - sx * dy1) / det
-    return jnp.array([[x1 - x0 + g * x1, x3 - x0 + h * x3, x0],
-                      [y1 - y0 + g * y1, y3 - y0 + h * y3, y0],
-                      [g, h, 1.0]])
+    return jnp.array(
+        [
+            [x1 - x0 + g * x1, x3 - x0 + h * x3, x0],
+            [y1 - y0 + g * y1, y3 - y0 + h * y3, y0],
+            [g, h, 1.0],
+        ]
+    )
 
 
-def sample_homography(key: jax.Array, height: int, width: int,
-                      config: HomographyConfig = HomographyConfig()) -> jax.Array:
+def sample_homography(
+    key: jax.Array, height: int, width: int, config: HomographyConfig = HomographyConfig()
+) -> jax.Array:
     """Draws the random spatial transform T of paper section 3 for a [height, width] image.
 
     The returned H maps pixels of the source image (branch A) to the warped image (branch B),
@@ -220,20 +235,29 @@ def sample_homography(key: jax.Array, height: int, width: int,
       float32 [3, 3] with H[2, 2] = 1.
     """
     if height < 2 or width < 2:
-        raise ValueError(f"sample_homography needs an image of at least 2x2 pixels, got {height}x{width}")
+        raise ValueError(
+            f"sample_homography needs an image of at least 2x2 pixels, got {height}x{width}"
+        )
     if config.rotation_range is not None:
-        raise ValueError("HomographyConfig.rotation_range is drawn by sample_window_homography only (in "
-                         "training: data.context_window=True); inside the crop a patch rotated that far "
-                         "would almost never fit")
+        raise ValueError(
+            "HomographyConfig.rotation_range is drawn by sample_window_homography only (in "
+            "training: data.context_window=True); inside the crop a patch rotated that far "
+            "would almost never fit"
+        )
     n = config.num_candidates
     key_perspective, key_scale, key_angle, key_translation = jax.random.split(key, 4)
     half = jnp.array([(width - 1) / 2, (height - 1) / 2], jnp.float32)
     unit = jnp.array(_UNIT_CORNERS, jnp.float32)
 
-    keystone = jax.random.uniform(key_perspective, (n, 1, 2), minval=-config.perspective,
-                                  maxval=config.perspective)
-    corners = (config.patch_ratio * unit + jnp.array(_KEYSTONE)[:, None] * keystone) * half  # [n, 4, 2]
-    scale = jax.random.uniform(key_scale, (n, 1, 1), minval=1 - config.scaling, maxval=1 + config.scaling)
+    keystone = jax.random.uniform(
+        key_perspective, (n, 1, 2), minval=-config.perspective, maxval=config.perspective
+    )
+    corners = (
+        config.patch_ratio * unit + jnp.array(_KEYSTONE)[:, None] * keystone
+    ) * half  # [n, 4, 2]
+    scale = jax.random.uniform(
+        key_scale, (n, 1, 1), minval=1 - config.scaling, maxval=1 + config.scaling
+    )
     angle = jax.random.uniform(key_angle, (n,), minval=-config.max_angle, maxval=config.max_angle)
     cos, sin = jnp.cos(angle), jnp.sin(angle)
     rotation = jnp.stack([jnp.stack([cos, -sin], -1), jnp.stack([sin, cos], -1)], -2)  # [n, 2, 2]
@@ -258,7 +282,9 @@ def window_origin(height: int, width: int, window: tuple[int, int]) -> tuple[int
     context window: ((window_width - width) // 2, (window_height - height) // 2), Python ints."""
     window_height, window_width = window
     if window_height < height or window_width < width:
-        raise ValueError(f"a {window_height}x{window_width} window cannot hold a {height}x{width} crop")
+        raise ValueError(
+            f"a {window_height}x{window_width} window cannot hold a {height}x{width} crop"
+        )
     return (window_width - width) // 2, (window_height - height) // 2
 
 
@@ -268,7 +294,9 @@ def _rotation_angles(key: jax.Array, shape: tuple[int, ...], config: HomographyC
         low, high = -config.max_angle, config.max_angle
     else:
         low, high = (math.radians(v) for v in config.rotation_range)
-    return jax.random.uniform(key, shape, minval=low, maxval=high)  # "uniform", the only distribution
+    return jax.random.uniform(
+        key, shape, minval=low, maxval=high
+    )  # "uniform", the only distribution
 
 
 def _rotations(angle: jax.Array) -> jax.Array:
@@ -277,8 +305,13 @@ def _rotations(angle: jax.Array) -> jax.Array:
     return jnp.stack([jnp.stack([cos, -sin], -1), jnp.stack([sin, cos], -1)], -2)
 
 
-def sample_window_homography(key: jax.Array, height: int, width: int, window: tuple[int, int],
-                             config: HomographyConfig = HomographyConfig()) -> jax.Array:
+def sample_window_homography(
+    key: jax.Array,
+    height: int,
+    width: int,
+    window: tuple[int, int],
+    config: HomographyConfig = HomographyConfig(),
+) -> jax.Array:
     """The random spatial transform T of paper section 3 for a crop at the centre of a context window,
     so that T can rotate by any angle without zooming in.
 
@@ -305,8 +338,9 @@ def sample_window_homography(key: jax.Array, height: int, width: int, window: tu
       float32 [3, 3] with H[2, 2] = 1, mapping A's pixels to B's.
     """
     if height < 2 or width < 2:
-        raise ValueError(f"sample_window_homography needs a crop of at least 2x2 pixels, got "
-                         f"{height}x{width}")
+        raise ValueError(
+            f"sample_window_homography needs a crop of at least 2x2 pixels, got {height}x{width}"
+        )
     origin_x, origin_y = window_origin(height, width, window)
     n = config.num_candidates
     key_perspective, key_scale, key_angle, key_translation = jax.random.split(key, 4)
@@ -316,10 +350,15 @@ def sample_window_homography(key: jax.Array, height: int, width: int, window: tu
     window_low = jnp.array([-origin_x, -origin_y], jnp.float32)
     window_high = jnp.array([window[1] - 1 - origin_x, window[0] - 1 - origin_y], jnp.float32)
 
-    keystone = jax.random.uniform(key_perspective, (n, 1, 2), minval=-config.perspective,
-                                  maxval=config.perspective)
-    corners = (config.patch_ratio * unit + jnp.array(_KEYSTONE)[:, None] * keystone) * half  # [n, 4, 2]
-    scale = jax.random.uniform(key_scale, (n, 1, 1), minval=1 - config.scaling, maxval=1 + config.scaling)
+    keystone = jax.random.uniform(
+        key_perspective, (n, 1, 2), minval=-config.perspective, maxval=config.perspective
+    )
+    corners = (
+        config.patch_ratio * unit + jnp.array(_KEYSTONE)[:, None] * keystone
+    ) * half  # [n, 4, 2]
+    scale = jax.random.uniform(
+        key_scale, (n, 1, 1), minval=1 - config.scaling, maxval=1 + config.scaling
+    )
     corners = scale * corners
     # One angle for all candidates: rejection then shapes only scale, keystone and translation, and
     # the angles follow their distribution exactly (per-candidate angles thin out the diagonals,

@@ -177,9 +177,7 @@ def pair_loss(
         config.alpha_position,
         config.alpha_score,
     )
-    uni = sum(
-        uniform_loss(pred.relative[:, axis]) for pred in (pred_a, pred_b) for axis in (0, 1)
-    )
+    uni = sum(uniform_loss(pred.relative[:, axis]) for pred in (pred_a, pred_b) for axis in (0, 1))
     # The score terms of eq. 5 are blind to a common shift of all scores (sum_k (d_k - mean d)
     # = 0) while (s_A - s_B)^2 shrinks as the sigmoid saturates, so nothing stops every score
     # sliding to 0, where gradients vanish: the collapse peers reported. Anchoring the mean at
@@ -246,7 +244,7 @@ def total_loss(
 
     pred_a, pred_b: ``Predictions`` with a leading batch axis; homographies: [B, 3, 3].
     """
-    losses, metrics = jax.vmap(
-        lambda pa, pb, h: pair_loss(pa, pb, h, height, width, config)
-    )(pred_a, pred_b, homographies)
+    losses, metrics = jax.vmap(lambda pa, pb, h: pair_loss(pa, pb, h, height, width, config))(
+        pred_a, pred_b, homographies
+    )
     return jnp.mean(losses), jax.tree.map(jnp.mean, metrics)

@@ -64,7 +64,9 @@ class ModelConfig:
 
     def __post_init__(self):
         if self.backbone not in BACKBONES:
-            raise ValueError(f"backbone must be one of {', '.join(BACKBONES)}, got {self.backbone!r}")
+            raise ValueError(
+                f"backbone must be one of {', '.join(BACKBONES)}, got {self.backbone!r}"
+            )
         expected = {"vgg": (8, "4 pairs of convs"), "fast": (4, "one per resolution")}
         count, meaning = expected[self.backbone]
         if len(self.backbone_channels) != count:
@@ -78,8 +80,14 @@ def fast_config(**changes) -> ModelConfig:
     """The fast network: :class:`FastBackbone` (8/24/48/96 channels), 64-wide score and position
     heads, a 128-wide 1x1 descriptor head and 128-d descriptors; 1.96 GFLOP per 240x320 image
     against the paper network's 13.3 (``benchmarks/common.py`` ``forward_gflop``)."""
-    fields = dict(backbone="fast", backbone_channels=(8, 24, 48, 96), head_channels=64,
-                  descriptor_head_channels=128, descriptor_head_kernel=1, descriptor_dim=128)
+    fields = dict(
+        backbone="fast",
+        backbone_channels=(8, 24, 48, 96),
+        head_channels=64,
+        descriptor_head_channels=128,
+        descriptor_head_kernel=1,
+        descriptor_dim=128,
+    )
     return ModelConfig(**{**fields, **changes})
 
 
@@ -181,8 +189,9 @@ def _zero_mean_init(scale: float):
     return init
 
 
-def _conv_bn_act(x, channels, *, train, config, dtype, kernel=(3, 3), strides=1, padding="SAME",
-                 act=True):
+def _conv_bn_act(
+    x, channels, *, train, config, dtype, kernel=(3, 3), strides=1, padding="SAME", act=True
+):
     """3x3 conv, BatchNorm and leaky ReLU: the block every layer of both backbones is made of."""
     x = nn.Conv(channels, kernel, strides=strides, padding=padding, dtype=dtype)(x)
     x = nn.BatchNorm(
@@ -271,12 +280,19 @@ class UnsuperPoint(nn.Module):
             descriptor_input = cells
             # Each cell's own 8x8 full-resolution features, as one patch conv: the score and
             # the position inside the cell read the pixels they localise.
-            patch = conv_bn_act(full, cfg.head_channels, kernel=(CELL, CELL), strides=CELL,
-                                padding="VALID")
+            patch = conv_bn_act(
+                full, cfg.head_channels, kernel=(CELL, CELL), strides=CELL, padding="VALID"
+            )
             point_input = jnp.concatenate([cells, patch], axis=-1)
 
-        def head(inputs, out_channels, name, init_scale=1.0, hidden_channels=cfg.head_channels,
-                 hidden_kernel=3):
+        def head(
+            inputs,
+            out_channels,
+            name,
+            init_scale=1.0,
+            hidden_channels=cfg.head_channels,
+            hidden_kernel=3,
+        ):
             hidden = conv_bn_act(inputs, hidden_channels, kernel=(hidden_kernel, hidden_kernel))
             out = nn.Conv(
                 out_channels,
@@ -291,12 +307,16 @@ class UnsuperPoint(nn.Module):
         cells_h, cells_w = height // CELL, width // CELL
         m = cells_h * cells_w
         scores = nn.sigmoid(head(point_input, 1, "score")).reshape(batch, m)
-        relative = nn.sigmoid(
-            head(point_input, 2, "position", cfg.position_init_scale)
-        ).reshape(batch, m, 2)
-        descriptor_map = head(descriptor_input, cfg.descriptor_dim, "descriptor",
-                              hidden_channels=cfg.descriptor_head_channels or cfg.head_channels,
-                              hidden_kernel=cfg.descriptor_head_kernel)
+        relative = nn.sigmoid(head(point_input, 2, "position", cfg.position_init_scale)).reshape(
+            batch, m, 2
+        )
+        descriptor_map = head(
+            descriptor_input,
+            cfg.descriptor_dim,
+            "descriptor",
+            hidden_channels=cfg.descriptor_head_channels or cfg.head_channels,
+            hidden_kernel=cfg.descriptor_head_kernel,
+        )
         keypoints = relative_to_pixels(relative, cells_h, cells_w)
         if cfg.interpolate_descriptors:
             descriptors = jax.vmap(bilinear_sample)(descriptor_map, keypoints)

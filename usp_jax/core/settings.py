@@ -38,10 +38,19 @@ RANGES = {
     "loss.lambda_d": _NON_NEGATIVE,
     "loss.eps_correspond": (1e-9, None),
     "loss.eps_descriptor": (1e-9, None),
-    **{f"loss.{name}": _NON_NEGATIVE for name in (
-        "alpha_usp", "alpha_position", "alpha_score", "alpha_uni_xy", "alpha_score_mean",
-        "alpha_uni_score", "alpha_desc", "alpha_decorr",
-    )},
+    **{
+        f"loss.{name}": _NON_NEGATIVE
+        for name in (
+            "alpha_usp",
+            "alpha_position",
+            "alpha_score",
+            "alpha_uni_xy",
+            "alpha_score_mean",
+            "alpha_uni_score",
+            "alpha_desc",
+            "alpha_decorr",
+        )
+    },
 }
 # The network maps each 8x8 cell to one point: crops must be whole cells.
 _MULTIPLE_OF_CELL = ("data.height", "data.width")
@@ -108,9 +117,7 @@ def check_fields(node: Any, prefix: str) -> None:
             check_fields(value, key + ".")
             continue
         if not _fits(value, annotation):
-            raise ValueError(
-                f"config key {key}={value!r} is not of type {_type_name(annotation)}"
-            )
+            raise ValueError(f"config key {key}={value!r} is not of type {_type_name(annotation)}")
         numbers = _numbers(value)
         if any(not math.isfinite(v) for v in numbers):
             raise ValueError(f"config key {key}={value!r} is not a finite number")
@@ -125,7 +132,6 @@ def check_fields(node: Any, prefix: str) -> None:
             )
         if key == "model.dtype" and value not in _DTYPES:
             raise ValueError(f"config key {key}={value!r} must be one of {', '.join(_DTYPES)}")
-
 
 
 def from_dict(data: dict, cls: type) -> Any:

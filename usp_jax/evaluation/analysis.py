@@ -46,9 +46,12 @@ def in_plane_rotation(homography: np.ndarray, shape: tuple[int, int]) -> float:
     centre = np.array([(width - 1) / 2, (height - 1) / 2, 1.0])
     projected = homography @ centre
     # d(p / w) / dx = (H[:2, :2] w - p H[2, :2]) / w**2 for the homogeneous image p = H @ (x, y, 1).
-    jacobian = (homography[:2, :2] * projected[2]
-                - np.outer(projected[:2], homography[2, :2])) / projected[2] ** 2
-    return math.degrees(math.atan2(jacobian[1, 0] - jacobian[0, 1], jacobian[0, 0] + jacobian[1, 1]))
+    jacobian = (
+        homography[:2, :2] * projected[2] - np.outer(projected[:2], homography[2, :2])
+    ) / projected[2] ** 2
+    return math.degrees(
+        math.atan2(jacobian[1, 0] - jacobian[0, 1], jacobian[0, 0] + jacobian[1, 1])
+    )
 
 
 def rotation_ranges(angles) -> tuple[tuple[int, int | None], ...]:
@@ -62,8 +65,9 @@ def _range_label(low: int, ranges) -> str:
     return f">={low}" if high is None else f"{low}-{high}"
 
 
-def by_rotation(rows: list[dict], pairs_root: str | pathlib.Path,
-                ranges=None) -> dict[str, dict[str, dict]]:
+def by_rotation(
+    rows: list[dict], pairs_root: str | pathlib.Path, ranges=None
+) -> dict[str, dict[str, dict]]:
     """``{method: {rotation range: statistics}}`` over the viewpoint pairs of evaluation rows, for
     every method in them, the ranges (default :func:`rotation_ranges` of the evaluated pairs)
     applied to :func:`in_plane_rotation` of each pair's homography at image 1's centre (read from
@@ -86,7 +90,10 @@ def by_rotation(rows: list[dict], pairs_root: str | pathlib.Path,
         return max((low for low in lows if turn >= low), default=lows[0])
 
     table = _statistics(rows, opening)
-    return {m: {_range_label(low, ranges): s for low, s in groups.items()} for m, groups in table.items()}
+    return {
+        m: {_range_label(low, ranges): s for low, s in groups.items()}
+        for m, groups in table.items()
+    }
 
 
 def _statistics(rows: list[dict], group_of) -> dict[str, dict]:
@@ -101,20 +108,26 @@ def _statistics(rows: list[dict], group_of) -> dict[str, dict]:
         table[method] = {}
         for key, group in sorted(groups.items()):
             values = per_pair(group)[method]
-            error = [math.inf if row["corner_error"] is None else row["corner_error"]
-                     for row in group]
+            error = [
+                math.inf if row["corner_error"] is None else row["corner_error"] for row in group
+            ]
             table[method][key] = {
                 "pairs": len(group),
-                **{m: float(np.nanmean(v)) if np.isfinite(v).any() else math.nan
-                   for m, v in values.items()},
+                **{
+                    m: float(np.nanmean(v)) if np.isfinite(v).any() else math.nan
+                    for m, v in values.items()
+                },
                 "median_corner_error": float(np.median(error)),
             }
     return table
 
 
 def markdown_by_view(table: dict, group: str = "view k") -> str:
-    lines = [f"| method | {group} | pairs | HA e=1 | HA e=3 | HA e=5 | median corner error (px) "
-             "| LE | RS | MS |", "|" + "---|" * 10]
+    lines = [
+        f"| method | {group} | pairs | HA e=1 | HA e=3 | HA e=5 | median corner error (px) "
+        "| LE | RS | MS |",
+        "|" + "---|" * 10,
+    ]
     for method, views in table.items():
         for k, s in views.items():
             lines.append(
@@ -170,7 +183,12 @@ def inlier_residuals_by_view(
         for method in methods:
             features1, features2 = (protocol.detect(method, im, nms) for im in (image1, image2))
             kept1, kept2, matching = metrics.homography_matching(
-                features1, features2, homography, image1.shape[:2], image2.shape[:2], top_k,
+                features1,
+                features2,
+                homography,
+                image1.shape[:2],
+                image2.shape[:2],
+                top_k,
                 method.norm,
             )
             row = inlier_residuals(
@@ -183,8 +201,10 @@ def inlier_residuals_by_view(
     table: dict[str, dict[int, dict[str, float]]] = {method.name: {} for method in methods}
     for (name, k), group in sorted(rows.items()):
         table[name][k] = {
-            **{key: float(np.nanmean([r[key] for r in group]))
-               for key in ("inliers", "rms", "over_2px", "coverage")},
+            **{
+                key: float(np.nanmean([r[key] for r in group]))
+                for key in ("inliers", "rms", "over_2px", "coverage")
+            },
             "corner_error": float(np.median([r["corner_error"] for r in group])),
         }
     return table
@@ -206,8 +226,14 @@ def markdown_inlier_residuals(table: dict[str, dict[int, dict[str, float]]]) -> 
     return "\n".join(lines)
 
 
-def training_rotations(homography: geometry.HomographyConfig, height: int, width: int, draws: int,
-              seed: int = 0, window: tuple[int, int] | None = None) -> np.ndarray:
+def training_rotations(
+    homography: geometry.HomographyConfig,
+    height: int,
+    width: int,
+    draws: int,
+    seed: int = 0,
+    window: tuple[int, int] | None = None,
+) -> np.ndarray:
     """In-plane rotations in degrees [draws] of random training homographies for a
     [height, width] crop; with ``window`` (a config's ``data.context_window``), those drawn for
     branch B rendered from a context window of that (height, width) around the crop."""
@@ -215,7 +241,9 @@ def training_rotations(homography: geometry.HomographyConfig, height: int, width
     if window is None:
         sample = jax.vmap(lambda key: geometry.sample_homography(key, height, width, homography))
     else:
-        sample = jax.vmap(lambda key: geometry.sample_window_homography(key, height, width, window,
-                                                                        homography))
-    return np.array([in_plane_rotation(h, (height, width))
-                     for h in np.asarray(sample(keys), np.float64)])
+        sample = jax.vmap(
+            lambda key: geometry.sample_window_homography(key, height, width, window, homography)
+        )
+    return np.array(
+        [in_plane_rotation(h, (height, width)) for h in np.asarray(sample(keys), np.float64)]
+    )

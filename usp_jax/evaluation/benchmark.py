@@ -109,7 +109,8 @@ def benchmark(
     if not photos:
         raise ValueError("benchmark needs at least one image")
     detectors = (
-        {UNSUPERPOINT: detector} if isinstance(detector, Detector)
+        {UNSUPERPOINT: detector}
+        if isinstance(detector, Detector)
         else {f"{UNSUPERPOINT} {name}": d for name, d in detector.items()}
     )
     device = jax.devices()[0]

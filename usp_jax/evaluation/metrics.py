@@ -171,9 +171,7 @@ def homography_accuracy(
     (KP2D's ``compute_homography``): :func:`homography_matching`, then :func:`corner_error`.
     The pair is correct at tolerance eps when the returned error is ``<= eps``; a failed
     estimate returns ``inf`` (wrong at every eps)."""
-    _, _, matching = homography_matching(
-        features1, features2, homography, shape1, shape2, k, norm
-    )
+    _, _, matching = homography_matching(features1, features2, homography, shape1, shape2, k, norm)
     return corner_error(homography, matching.homography, shape1)
 
 

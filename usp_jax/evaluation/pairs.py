@@ -23,16 +23,21 @@ from __future__ import annotations
 import dataclasses
 import math
 import warnings
+from collections.abc import Iterable, Sequence
 from pathlib import Path
-from typing import Iterable, Sequence
 
 import cv2
 import jax
 import numpy as np
 from tqdm import tqdm
 
+from usp_jax.core.geometry import (
+    HomographyConfig,
+    sample_homography,
+    sample_window_homography,
+    window_origin,
+)
 from usp_jax.inference.images import IMAGE_SUFFIXES, read_image
-from usp_jax.core.geometry import HomographyConfig, sample_homography, sample_window_homography, window_origin
 
 # Image 1 of every scene: an upright, undistorted crop, like the frontal reference shots of HPatches.
 REFERENCE_VIEW = HomographyConfig(patch_ratio=0.75, scaling=0.0, max_angle=0.0, perspective=0.0)
@@ -40,8 +45,9 @@ REFERENCE_VIEW = HomographyConfig(patch_ratio=0.75, scaling=0.0, max_angle=0.0, 
 # image 1 by a factor of ~3.5 (median), which with the scale and rotation ranges resembles the hardest
 # HPatches "v" images (whose rotations are moderate, hence pi/6), while image N still overlaps image 1
 # by ~85 % (median). Strong draws are rejected often, so draw many candidates.
-HARDEST_VIEW = HomographyConfig(patch_ratio=0.75, scaling=0.2, max_angle=math.pi / 6, perspective=0.3,
-                                num_candidates=256)
+HARDEST_VIEW = HomographyConfig(
+    patch_ratio=0.75, scaling=0.2, max_angle=math.pi / 6, perspective=0.3, num_candidates=256
+)
 
 
 # Seeds the drawn rotation angles' generator together with (seed, photo index): a stream of its own, so
@@ -51,29 +57,43 @@ _ROTATION_STREAM = 1
 
 def _view_config(strength: float) -> HomographyConfig:
     """HARDEST_VIEW with its rotation, scale and perspective ranges scaled by strength in (0, 1]."""
-    return dataclasses.replace(HARDEST_VIEW, scaling=HARDEST_VIEW.scaling * strength,
-                               max_angle=HARDEST_VIEW.max_angle * strength,
-                               perspective=HARDEST_VIEW.perspective * strength)
+    return dataclasses.replace(
+        HARDEST_VIEW,
+        scaling=HARDEST_VIEW.scaling * strength,
+        max_angle=HARDEST_VIEW.max_angle * strength,
+        perspective=HARDEST_VIEW.perspective * strength,
+    )
 
 
-def _check_rotation(rotation: float | None,
-                    rotation_angles: Sequence[float] | None) -> tuple[float, ...] | None:
+def _check_rotation(
+    rotation: float | None, rotation_angles: Sequence[float] | None
+) -> tuple[float, ...] | None:
     """The fixed angles as a tuple (None when not given), after checking both rotation arguments."""
     if rotation is not None and rotation_angles is not None:
-        raise ValueError("give rotation (a range to draw from) or rotation_angles (a list), not both")
+        raise ValueError(
+            "give rotation (a range to draw from) or rotation_angles (a list), not both"
+        )
     if rotation is not None and not 0.0 <= rotation <= 180.0:
         raise ValueError(f"rotation must lie in [0, 180] degrees, got {rotation}")
     if rotation_angles is None:
         return None
     angles = tuple(float(a) for a in rotation_angles)
     if not angles or not all(-180.0 <= a <= 180.0 for a in angles):
-        raise ValueError(f"rotation_angles must be one or more angles in [-180, 180] degrees, got "
-                         f"{list(rotation_angles)}")
+        raise ValueError(
+            f"rotation_angles must be one or more angles in [-180, 180] degrees, got "
+            f"{list(rotation_angles)}"
+        )
     return angles
 
 
-def pair_rotations(index: int, num_views: int, *, seed: int = 0, rotation: float | None = None,
-                   rotation_angles: Sequence[float] | None = None) -> list[float]:
+def pair_rotations(
+    index: int,
+    num_views: int,
+    *,
+    seed: int = 0,
+    rotation: float | None = None,
+    rotation_angles: Sequence[float] | None = None,
+) -> list[float]:
     """The extra in-plane angles in degrees of the viewpoint pairs (1, 2) .. (1, num_views) of source photo
     `index` (its position in the source list): drawn uniformly from [-rotation, rotation], or
     rotation_angles[(index + k - 2) % len(rotation_angles)] for pair (1, k), so that every angle of the list
@@ -94,9 +114,13 @@ def _list_sources(images: str | Path | Iterable[str | Path]) -> list[Path]:
         folder = Path(images)
         if not folder.is_dir():
             raise FileNotFoundError(f"image folder not found: {folder}")
-        paths = sorted(p for p in folder.iterdir() if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES)
+        paths = sorted(
+            p for p in folder.iterdir() if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES
+        )
         if not paths:
-            raise FileNotFoundError(f"no image files ({', '.join(sorted(IMAGE_SUFFIXES))}) in {folder}")
+            raise FileNotFoundError(
+                f"no image files ({', '.join(sorted(IMAGE_SUFFIXES))}) in {folder}"
+            )
     else:
         paths = [Path(p) for p in images]
         if not paths:
@@ -107,8 +131,9 @@ def _list_sources(images: str | Path | Iterable[str | Path]) -> list[Path]:
     stems: dict[str, Path] = {}
     for path in paths:
         if path.stem in stems:
-            raise ValueError(f"source images {stems[path.stem]} and {path} share the scene name "
-                             f"{path.stem!r}")
+            raise ValueError(
+                f"source images {stems[path.stem]} and {path} share the scene name {path.stem!r}"
+            )
         stems[path.stem] = path
     return paths
 
@@ -118,12 +143,16 @@ def _fit_to_cover(image: np.ndarray, height: int, width: int) -> np.ndarray:
     factor = max(height / image.shape[0], width / image.shape[1])
     size = (max(width, round(image.shape[1] * factor)), max(height, round(image.shape[0] * factor)))
     # INTER_AREA averages when shrinking (no aliasing); cubic keeps edges sharper when enlarging.
-    resized = cv2.resize(image, size, interpolation=cv2.INTER_AREA if factor < 1 else cv2.INTER_CUBIC)
+    resized = cv2.resize(
+        image, size, interpolation=cv2.INTER_AREA if factor < 1 else cv2.INTER_CUBIC
+    )
     top, left = (resized.shape[0] - height) // 2, (resized.shape[1] - width) // 2
-    return resized[top:top + height, left:left + width]
+    return resized[top : top + height, left : left + width]
 
 
-def _illumination_change(image: np.ndarray, strength: float, rng: np.random.Generator) -> np.ndarray:
+def _illumination_change(
+    image: np.ndarray, strength: float, rng: np.random.Generator
+) -> np.ndarray:
     """Gamma, contrast, brightness, colour temperature and noise on a float [H, W, 3] RGB image in [0, 1].
 
     Directions are random, magnitudes grow with strength in (0, 1]: at strength 1 gamma and brightness
@@ -135,13 +164,15 @@ def _illumination_change(image: np.ndarray, strength: float, rng: np.random.Gene
     brightness = 2.0 ** (brightness_sign * strength)
     warmth = warmth_sign * 0.3 * strength
     gains = brightness * np.array([1.0 + warmth, 1.0, 1.0 - warmth])
-    changed = image ** gamma
+    changed = image**gamma
     changed = (changed - changed.mean()) * contrast + changed.mean()
     changed = changed * gains + rng.normal(0.0, 0.02 * strength, image.shape)
     return np.clip(changed, 0.0, 1.0)
 
 
-def _write_scene(scene: Path, views: Sequence[np.ndarray], homographies: Sequence[np.ndarray]) -> None:
+def _write_scene(
+    scene: Path, views: Sequence[np.ndarray], homographies: Sequence[np.ndarray]
+) -> None:
     """Writes uint8 RGB views as 1.ppm.. (BGR on disk) and homographies[k] (image 1 -> k+2) as H_1_k."""
     scene.mkdir(parents=True, exist_ok=True)
     for index, view in enumerate(views, start=1):
@@ -152,10 +183,18 @@ def _write_scene(scene: Path, views: Sequence[np.ndarray], homographies: Sequenc
         np.savetxt(scene / f"H_1_{index}", homography)
 
 
-def make_pairs(images: str | Path | Iterable[str | Path], out_dir: str | Path, *, seed: int = 0,
-               size: tuple[int, int] = (480, 640), num_views: int = 6, kinds: Sequence[str] = ("v", "i"),
-               rotation: float | None = None, rotation_angles: Sequence[float] | None = None,
-               progress: bool = False) -> list[Path]:
+def make_pairs(
+    images: str | Path | Iterable[str | Path],
+    out_dir: str | Path,
+    *,
+    seed: int = 0,
+    size: tuple[int, int] = (480, 640),
+    num_views: int = 6,
+    kinds: Sequence[str] = ("v", "i"),
+    rotation: float | None = None,
+    rotation_angles: Sequence[float] | None = None,
+    progress: bool = False,
+) -> list[Path]:
     """Writes `v_<stem>` / `i_<stem>` HPatches-style scenes for every readable source photo.
 
     Args:
@@ -208,14 +247,20 @@ def make_pairs(images: str | Path | Iterable[str | Path], out_dir: str | Path, *
     # the frame; that mapping cancels in H_1_k = Hk @ inv(H1).
     source_height = math.ceil(window[0] / REFERENCE_VIEW.patch_ratio)
     source_width = math.ceil(window[1] / REFERENCE_VIEW.patch_ratio)
-    to_frame = np.diag([(window[1] - 1) / (source_width - 1), (window[0] - 1) / (source_height - 1), 1.0])
+    to_frame = np.diag(
+        [(window[1] - 1) / (source_width - 1), (window[0] - 1) / (source_height - 1), 1.0]
+    )
     if rotated:
         origin_x, origin_y = window_origin(height, width, window)
-        to_frame = np.array([[1.0, 0.0, -origin_x], [0.0, 1.0, -origin_y], [0.0, 0.0, 1.0]]) @ to_frame
+        to_frame = (
+            np.array([[1.0, 0.0, -origin_x], [0.0, 1.0, -origin_y], [0.0, 0.0, 1.0]]) @ to_frame
+        )
     strengths = [(k - 1) / (num_views - 1) for k in range(2, num_views + 1)]  # of images 2..N
     configs = [REFERENCE_VIEW] + [_view_config(strength) for strength in strengths]
     scenes: list[Path] = []
-    for index, path in enumerate(tqdm(sources, desc="make-pairs", unit="photo", disable=not progress)):
+    for index, path in enumerate(
+        tqdm(sources, desc="make-pairs", unit="photo", disable=not progress)
+    ):
         try:
             photo = _fit_to_cover(read_image(path), source_height, source_width)
         except ValueError:
@@ -225,22 +270,46 @@ def make_pairs(images: str | Path | Iterable[str | Path], out_dir: str | Path, *
         # Called eagerly on purpose: under jit every strength would be a separate compilation, while op-by-op
         # dispatch compiles each primitive once and then takes milliseconds per view.
         if rotated:
-            turns = pair_rotations(index, num_views, seed=seed, rotation=rotation,
-                                   rotation_angles=rotation_angles)
-            frames = [np.asarray(sample_homography(jax.random.fold_in(key, 1), height, width, REFERENCE_VIEW),
-                                 np.float64)]
+            turns = pair_rotations(
+                index, num_views, seed=seed, rotation=rotation, rotation_angles=rotation_angles
+            )
+            frames = [
+                np.asarray(
+                    sample_homography(jax.random.fold_in(key, 1), height, width, REFERENCE_VIEW),
+                    np.float64,
+                )
+            ]
             for k, (config, turn) in enumerate(zip(configs[1:], turns), start=2):
                 # The pair's own rotation range, centred on the extra angle: the two compose.
                 own = math.degrees(config.max_angle)
                 config = dataclasses.replace(config, rotation_range=(turn - own, turn + own))
-                frames.append(np.asarray(sample_window_homography(jax.random.fold_in(key, k), height, width,
-                                                                  window, config), np.float64))
+                frames.append(
+                    np.asarray(
+                        sample_window_homography(
+                            jax.random.fold_in(key, k), height, width, window, config
+                        ),
+                        np.float64,
+                    )
+                )
         else:
-            frames = [np.asarray(sample_homography(jax.random.fold_in(key, k), height, width, config),
-                                 np.float64) for k, config in enumerate(configs, start=1)]
+            frames = [
+                np.asarray(
+                    sample_homography(jax.random.fold_in(key, k), height, width, config), np.float64
+                )
+                for k, config in enumerate(configs, start=1)
+            ]
         # Every view lies inside the photo, so the black constant border never shows (a test checks it).
-        views = [cv2.warpPerspective(photo, frame @ to_frame, (width, height), flags=cv2.INTER_LINEAR,
-                                     borderMode=cv2.BORDER_CONSTANT, borderValue=0) for frame in frames]
+        views = [
+            cv2.warpPerspective(
+                photo,
+                frame @ to_frame,
+                (width, height),
+                flags=cv2.INTER_LINEAR,
+                borderMode=cv2.BORDER_CONSTANT,
+                borderValue=0,
+            )
+            for frame in frames
+        ]
         if "v" in kinds:
             reference_inverse = np.linalg.inv(frames[0])
             homographies = [frame @ reference_inverse for frame in frames[1:]]

@@ -35,7 +35,12 @@ PAPER = {
         "BRISK": {"rs": 0.566, "le": 1.077, "ha1": 0.414, "ha3": 0.767, "ha5": 0.826, "ms": 0.258},
         "SIFT": {"rs": 0.451, "le": 0.855, "ha1": 0.622, "ha3": 0.845, "ha5": 0.878, "ms": 0.304},
         "UnsuperPoint": {
-            "rs": 0.645, "le": 0.832, "ha1": 0.579, "ha3": 0.855, "ha5": 0.903, "ms": 0.424,
+            "rs": 0.645,
+            "le": 0.832,
+            "ha1": 0.579,
+            "ha3": 0.855,
+            "ha5": 0.903,
+            "ms": 0.424,
         },
     },
     "480x640": {
@@ -44,7 +49,12 @@ PAPER = {
         "BRISK": {"rs": 0.505, "le": 1.207, "ha1": 0.300, "ha3": 0.653, "ha5": 0.746, "ms": 0.211},
         "SIFT": {"rs": 0.421, "le": 1.011, "ha1": 0.602, "ha3": 0.833, "ha5": 0.876, "ms": 0.265},
         "UnsuperPoint": {
-            "rs": 0.612, "le": 0.991, "ha1": 0.493, "ha3": 0.843, "ha5": 0.905, "ms": 0.383,
+            "rs": 0.612,
+            "le": 0.991,
+            "ha1": 0.493,
+            "ha3": 0.843,
+            "ha5": 0.905,
+            "ms": 0.383,
         },
     },
     "240x320 NMS 4": {
@@ -161,8 +171,13 @@ def report(evaluated: dict, steps: int, training: dict | None = None) -> tuple[d
     if training:
         table += "\n\n" + training_markdown(training)
     summary_json = {
-        "steps": steps, "summary": summary, "relative": changes, "intervals": intervals,
-        "paper": PAPER_TABLE1, "training": training, "evaluation": evaluated,
+        "steps": steps,
+        "summary": summary,
+        "relative": changes,
+        "intervals": intervals,
+        "paper": PAPER_TABLE1,
+        "training": training,
+        "evaluation": evaluated,
     }
     return summary_json, table
 
@@ -232,8 +247,9 @@ def main() -> None:
         path = folder / name
         if not path.is_file():
             raise FileNotFoundError(f"{path} is missing: run the evaluation commands of RESULTS.md")
-        ours = with_upsampled(json.loads(path.read_text())["summary"],
-                              folder / UPSAMPLED_FILES[setting])
+        ours = with_upsampled(
+            json.loads(path.read_text())["summary"], folder / UPSAMPLED_FILES[setting]
+        )
         out += [f"### {setting}, {'300' if setting.startswith('240') else '1000'} points", ""]
         metrics = ("ha1", "ha3", "ha5", "ms") if "NMS" in setting else tuple(TITLES)
         out += table(ours, PAPER[setting], metrics) + [""]

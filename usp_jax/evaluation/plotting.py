@@ -258,8 +258,9 @@ def plot_training_curves(
     return _save(figure, path)
 
 
-def plot_example_pair(method, root: str | Path, out_dir: str | Path, res: tuple[int, int],
-                      top_k: int, nms: float) -> Path:
+def plot_example_pair(
+    method, root: str | Path, out_dir: str | Path, res: tuple[int, int], top_k: int, nms: float
+) -> Path:
     """Keypoints and matches (paper Figures 7-8) of ``method`` on the last (hardest) pair of the
     first viewpoint scene under ``root``, or of the first scene when there is none: the points
     and matches its HA comes from (NMS, shared-view filter, top-k). Writes
@@ -279,7 +280,17 @@ def plot_example_pair(method, root: str | Path, out_dir: str | Path, res: tuple[
         f1, f2, h, im1.shape[:2], im2.shape[:2], top_k, method.norm
     )
     stem = f"{method.name}_{pair.scene}_1_{pair.index}"
-    plot_keypoints(im1, f1.keypoints, im2, f2.keypoints, out_dir / f"{stem}_keypoints.png",
-                   homography=h)
-    return plot_matches(im1, im2, f1.keypoints, f2.keypoints, matching.matches, matching.inliers,
-                        h, matching.homography, out_dir / f"{stem}_matches.png")
+    plot_keypoints(
+        im1, f1.keypoints, im2, f2.keypoints, out_dir / f"{stem}_keypoints.png", homography=h
+    )
+    return plot_matches(
+        im1,
+        im2,
+        f1.keypoints,
+        f2.keypoints,
+        matching.matches,
+        matching.inliers,
+        h,
+        matching.homography,
+        out_dir / f"{stem}_matches.png",
+    )

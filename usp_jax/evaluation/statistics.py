@@ -80,8 +80,10 @@ def paired_change(base_rows: list[dict], new_rows: list[dict], rounds: int = 200
     if [(r["scene"], r["k"]) for r in base] != [(r["scene"], r["k"]) for r in new]:
         raise ValueError("the two evaluations did not score the same pairs")
     pairs = per_pair(base + new)
-    means = {name: {m: float(np.nanmean(v)) for m, v in metrics.items()}
-             for name, metrics in pairs.items()}
+    means = {
+        name: {m: float(np.nanmean(v)) for m, v in metrics.items()}
+        for name, metrics in pairs.items()
+    }
     changes = relative_changes(means, base="base")["new"]
     intervals = bootstrap_intervals(pairs, rounds=rounds, base="base")["new"]
     return {m: (changes[m], intervals[m]) for m in METRICS}

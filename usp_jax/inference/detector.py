@@ -105,9 +105,7 @@ def _detect_padded(
     predictions = model.apply(variables, pixels, train=False)
     if upsample > 1:
         # Pixel centres sit at integers: input pixel x spans [x - 0.5, x + 0.5], s network pixels.
-        predictions = predictions._replace(
-            keypoints=(predictions.keypoints + 0.5) / upsample - 0.5
-        )
+        predictions = predictions._replace(keypoints=(predictions.keypoints + 0.5) / upsample - 0.5)
     cells_h, cells_w = pixels.shape[1] // CELL, pixels.shape[2] // CELL
     return _select_points(
         predictions, sizes, cells_h, cells_w, top_n, nms_radius, border, CELL / upsample
@@ -342,5 +340,3 @@ def _check_top_n(top_n: int | None) -> int | None:
     if top_n is not None and top_n < 1:
         raise ValueError(f"top_n must be positive or None, got {top_n}")
     return top_n
-
-

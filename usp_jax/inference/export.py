@@ -13,6 +13,7 @@ import numpy as np
 from usp_jax.inference.detector import Detector, check_size, padding, unbatch
 from usp_jax.inference.features import Features
 
+
 def export(
     detector: Detector,
     path: str | pathlib.Path,

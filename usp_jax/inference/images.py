@@ -22,17 +22,25 @@ _SAMPLE_PHOTOS = {
         tuple(
             f"data/{name}"
             for name in (
-                "astronaut.png", "camera.png", "chelsea.png", "coffee.png", "rocket.jpg",
-                "motorcycle_left.png", "motorcycle_right.png", "brick.png", "grass.png",
-                "gravel.png", "coins.png", "text.png", "page.png",
+                "astronaut.png",
+                "camera.png",
+                "chelsea.png",
+                "coffee.png",
+                "rocket.jpg",
+                "motorcycle_left.png",
+                "motorcycle_right.png",
+                "brick.png",
+                "grass.png",
+                "gravel.png",
+                "coins.png",
+                "text.png",
+                "page.png",
             )
         ),
     ),
     "matplotlib": ("matplotlib", ("mpl-data/sample_data/grace_hopper.jpg",)),
     "scikit-learn": ("sklearn", ("datasets/images/china.jpg", "datasets/images/flower.jpg")),
 }
-
-
 
 
 def decode_image(data: bytes, name: str = "image") -> np.ndarray:
@@ -44,9 +52,7 @@ def decode_image(data: bytes, name: str = "image") -> np.ndarray:
     Raises ValueError naming ``name`` when OpenCV cannot decode the bytes.
     """
     try:
-        image = cv2.imdecode(
-            np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR | cv2.IMREAD_ANYDEPTH
-        )
+        image = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR | cv2.IMREAD_ANYDEPTH)
     except cv2.error:
         image = None  # OpenCV raises on some inputs (e.g. empty) and returns None on others.
     if image is None:
@@ -61,7 +67,6 @@ def decode_image(data: bytes, name: str = "image") -> np.ndarray:
 def read_image(path: str | pathlib.Path) -> np.ndarray:
     """The image file at ``path`` as uint8 [H, W, 3] RGB (see ``decode_image``)."""
     return decode_image(pathlib.Path(path).read_bytes(), str(path))
-
 
 
 def sample_photos() -> list[tuple[str, pathlib.Path]]:

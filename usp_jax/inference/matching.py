@@ -53,7 +53,9 @@ def match_and_estimate(
 
     Fewer than 4 matches, or no homography from OpenCV, gives ``homography=None`` and no inliers.
     """
-    matches = nearest_neighbours(features1.descriptors, features2.descriptors, norm, cross_check=True)
+    matches = nearest_neighbours(
+        features1.descriptors, features2.descriptors, norm, cross_check=True
+    )
     no_inliers = np.zeros(len(matches), dtype=bool)
     if len(matches) < 4:
         return Matching(matches, no_inliers, None)

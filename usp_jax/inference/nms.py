@@ -16,6 +16,7 @@ import numpy as np
 
 from usp_jax.core.model import CELL
 
+
 def _neighbours(values: jax.Array, cells_h: int, cells_w: int, reach: int, fill) -> jax.Array:
     """The values of every other cell within ``reach`` cells, [M, ...] -> [O, M, ...].
 
@@ -81,8 +82,11 @@ def radius_nms(
     m = scores.shape[0]
     reach = min(int(radius // cell) + 1, max(cells_h, cells_w) - 1)
     if reach < 1:  # a single cell: nothing to suppress
-        return jnp.asarray(valid, bool) if limit is None else _greedy_nms(
-            keypoints, scores, valid, radius, limit)
+        return (
+            jnp.asarray(valid, bool)
+            if limit is None
+            else _greedy_nms(keypoints, scores, valid, radius, limit)
+        )
     if reach > NEIGHBOUR_REACH or limit is not None:
         return _greedy_nms(keypoints, scores, valid, radius, limit)
 
@@ -124,8 +128,7 @@ def _greedy_nms(keypoints, scores, valid, radius: float, limit: int | None) -> j
         keep, remaining, count = state
         best = jnp.argmin(jnp.where(remaining, rank, m))
         close = jnp.sum((keypoints - keypoints[best]) ** 2, axis=-1) <= radius**2
-        return (keep.at[best].set(True), remaining & ~close & (jnp.arange(m) != best),
-                count + 1)
+        return (keep.at[best].set(True), remaining & ~close & (jnp.arange(m) != best), count + 1)
 
     keep, _, _ = jax.lax.while_loop(
         running, step, (jnp.zeros(m, bool), valid, jnp.zeros((), jnp.int32))

@@ -110,8 +110,10 @@ def _check_arrays(path: pathlib.Path, model_config: ModelConfig, flat: dict) -> 
         {"params": abstract["params"], "batch_stats": abstract.get("batch_stats", {})},
         sep=_SEPARATOR,
     )
-    network = (f"its {model_config.backbone} network (descriptor_dim"
-               f" {model_config.descriptor_dim}, head_channels {model_config.head_channels})")
+    network = (
+        f"its {model_config.backbone} network (descriptor_dim"
+        f" {model_config.descriptor_dim}, head_channels {model_config.head_channels})"
+    )
     for key, like in expected.items():
         if key not in flat:
             raise ValueError(f"{path}: array {key} of {network} is missing")
@@ -151,8 +153,13 @@ def read_checkpoint(path: str | pathlib.Path) -> tuple[dict, dict]:
     import orbax.checkpoint as ocp
 
     directory, step = resolve_checkpoint(path)
-    mngr = ocp.CheckpointManager(directory, item_handlers={
-        "state": ocp.StandardCheckpointHandler(), "config": ocp.JsonCheckpointHandler()})
+    mngr = ocp.CheckpointManager(
+        directory,
+        item_handlers={
+            "state": ocp.StandardCheckpointHandler(),
+            "config": ocp.JsonCheckpointHandler(),
+        },
+    )
     config = mngr.restore(step, args=ocp.args.Composite(config=ocp.args.JsonRestore()))["config"]
     # Onto this process's first device: a run on several devices or hosts saved its arrays
     # with shardings over those, which orbax refuses to recreate on other devices.

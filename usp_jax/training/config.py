@@ -163,7 +163,9 @@ def flatten(config: Config) -> dict[str, Any]:
 def differences(old: Config, new: Config) -> dict[str, tuple[Any, Any]]:
     """``{key: (old value, new value)}`` for every field that differs, by override key."""
     before, after = flatten(old), flatten(new)
-    return {key: (before.get(key), after.get(key)) for key in after if before.get(key) != after.get(key)}
+    return {
+        key: (before.get(key), after.get(key)) for key in after if before.get(key) != after.get(key)
+    }
 
 
 def _coerce(text: str, annotation: Any, where: str) -> Any:

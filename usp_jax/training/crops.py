@@ -50,8 +50,9 @@ def context_side(height: int, width: int) -> int:
     return math.ceil(math.hypot(height, width))
 
 
-def _window_offset(length: int, crop: int, side: int, origin: int, step: float,
-                   rng: np.random.Generator) -> float:
+def _window_offset(
+    length: int, crop: int, side: int, origin: int, step: float, rng: np.random.Generator
+) -> float:
     """Photo coordinate of the window's first pixel centre along one axis, uniform over the
     positions that keep the crop inside the photo and, where the photo is long enough, the whole
     window too (else the whole photo inside the window, which pads least). Window pixel i shows
@@ -108,14 +109,21 @@ def random_context_crop(
         region = cv2.resize(region, (shrunk_cols, shrunk_rows), interpolation=cv2.INTER_AREA)
     scale_y, scale_x = (y1 - y0) / region.shape[0], (x1 - x0) / region.shape[1]
     # Window pixel -> region pixel, with cv2.resize's pixel-centre mapping of the shrinking.
-    to_region = np.array([
-        [step / scale_x, 0.0, (left - x0 + 0.5) / scale_x - 0.5],
-        [0.0, step / scale_y, (top - y0 + 0.5) / scale_y - 0.5],
-    ])
+    to_region = np.array(
+        [
+            [step / scale_x, 0.0, (left - x0 + 0.5) / scale_x - 0.5],
+            [0.0, step / scale_y, (top - y0 + 0.5) / scale_y - 0.5],
+        ]
+    )
     # Replicating the border only fills the half region pixel at the photo's edge; pixels outside
     # the photo are zeroed by the mask below.
-    rgb = cv2.warpAffine(region, to_region, (side, side), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
-                         borderMode=cv2.BORDER_REPLICATE)
+    rgb = cv2.warpAffine(
+        region,
+        to_region,
+        (side, side),
+        flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
+        borderMode=cv2.BORDER_REPLICATE,
+    )
     along = np.arange(side) * step
     inside_y = (top + along >= 0) & (top + along <= rows - 1)
     inside_x = (left + along >= 0) & (left + along <= cols - 1)

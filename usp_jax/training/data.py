@@ -30,7 +30,7 @@ import logging
 import pathlib
 import threading
 import time
-from typing import Iterator, Sequence
+from collections.abc import Iterator, Sequence
 
 import grain
 import numpy as np
@@ -39,6 +39,7 @@ from usp_jax.inference.images import IMAGE_SUFFIXES, decode_image, sample_photos
 from usp_jax.training.crops import context_side, random_context_crop, random_crop
 
 log = logging.getLogger(__name__)
+
 
 @dataclasses.dataclass(frozen=True)
 class DataConfig:
@@ -163,9 +164,7 @@ def _folder_source(spec: str) -> FileSource:
     if not root.is_dir():
         raise ValueError(f"image source {spec} is not a folder (nor 'sample' or 'tfds:NAME')")
     # Sorted so that every host and every run index the same photo by the same number.
-    paths = sorted(
-        p for p in root.rglob("*") if p.suffix.lower() in IMAGE_SUFFIXES and p.is_file()
-    )
+    paths = sorted(p for p in root.rglob("*") if p.suffix.lower() in IMAGE_SUFFIXES and p.is_file())
     if not paths:
         raise ValueError(f"image folder {spec} holds no {'/'.join(IMAGE_SUFFIXES)} files")
     return FileSource(paths)

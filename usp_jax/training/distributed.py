@@ -32,7 +32,8 @@ import socket
 import sys
 import threading
 import time
-from typing import Callable, NoReturn
+from collections.abc import Callable
+from typing import NoReturn
 
 import jax
 
@@ -73,7 +74,7 @@ class Launch:
 
 
 def split_address(address: str) -> tuple[str, int]:
-    """"HOST:PORT" (an IPv6 host in brackets, "[::1]:1234") -> (host, port); ValueError in one
+    """ "HOST:PORT" (an IPv6 host in brackets, "[::1]:1234") -> (host, port); ValueError in one
     line for anything else."""
     host, colon, port = address.rpartition(":")
     host = host[1:-1] if host.startswith("[") and host.endswith("]") else host
@@ -159,8 +160,13 @@ def initialize(launch: Launch = Launch(), report: Callable[[str], None] | None =
     _STATE.watcher.start()
     # atexit runs last-registered first: the watcher stops before JAX's shutdown barrier.
     atexit.register(stop_watching)
-    log.info("process %d of %d joined, %d local of %d devices", jax.process_index(),
-             jax.process_count(), jax.local_device_count(), jax.device_count())
+    log.info(
+        "process %d of %d joined, %d local of %d devices",
+        jax.process_index(),
+        jax.process_count(),
+        jax.local_device_count(),
+        jax.device_count(),
+    )
 
 
 def preempted(step: int) -> bool:

@@ -11,7 +11,8 @@ number, so a resumed run sees exactly the randomness an uninterrupted one would.
 
 from __future__ import annotations
 
-from typing import Any, Callable
+from collections.abc import Callable
+from typing import Any
 
 import flax
 import jax
@@ -237,15 +238,11 @@ def train_step(
         )
         pred_a = jax.tree.map(lambda x: x[:batch], pred)
         pred_b = jax.tree.map(lambda x: x[batch:], pred)
-        loss, metrics = losses.total_loss(
-            pred_a, pred_b, homographies, height, width, config.loss
-        )
+        loss, metrics = losses.total_loss(pred_a, pred_b, homographies, height, width, config.loss)
         metrics.update({f"pred/{k}": v for k, v in _prediction_stats(pred).items()})
         return loss, (metrics, updates["batch_stats"])
 
-    (loss, (metrics, batch_stats)), grads = jax.value_and_grad(loss_fn, has_aux=True)(
-        state.params
-    )
+    (loss, (metrics, batch_stats)), grads = jax.value_and_grad(loss_fn, has_aux=True)(state.params)
     updates, opt_state = optimizer.update(grads, state.opt_state, state.params)
     params = optax.apply_updates(state.params, updates)
     grad_norm = optax.tree.norm(grads)
@@ -261,9 +258,7 @@ def data_mesh() -> jax.sharding.Mesh:
 
     Auto axes let XLA propagate the batch sharding through the vmapped per-image code.
     """
-    return jax.make_mesh(
-        (jax.device_count(),), ("data",), axis_types=(jax.sharding.AxisType.Auto,)
-    )
+    return jax.make_mesh((jax.device_count(),), ("data",), axis_types=(jax.sharding.AxisType.Auto,))
 
 
 def jit_train_step(config: config_lib.Config, mesh: jax.sharding.Mesh) -> Callable:

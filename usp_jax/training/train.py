@@ -18,7 +18,7 @@ import os
 import pathlib
 import shutil
 import time
-from typing import Iterator
+from collections.abc import Iterator
 
 import jax
 import numpy as np
@@ -176,8 +176,7 @@ def fit(
                 state = checkpoint.restore_state(mngr, state)
             except Exception as error:  # a damaged checkpoint: one line, the cause chained
                 raise WorkdirError(
-                    f"cannot restore checkpoint step {latest} of {workdir}:"
-                    f" {_first_line(error)}"
+                    f"cannot restore checkpoint step {latest} of {workdir}: {_first_line(error)}"
                 ) from error
             log.info("resumed from step %d", int(state.step))
         start = int(state.step)
@@ -186,8 +185,15 @@ def fit(
                 config_lib.save(config, workdir / "config.json")
             if changes:
                 with open(workdir / CONFIG_CHANGES_FILE, "a") as file:
-                    file.write(json.dumps({"step": start, "changes": {
-                        k: [old, new] for k, (old, new) in changes.items()}}) + "\n")
+                    file.write(
+                        json.dumps(
+                            {
+                                "step": start,
+                                "changes": {k: [old, new] for k, (old, new) in changes.items()},
+                            }
+                        )
+                        + "\n"
+                    )
         writer = MetricsWriter(workdir, enabled=is_main)
     except BaseException as error:
         if mngr is not None:
@@ -204,7 +210,10 @@ def fit(
         raise
     step_fn = jit_train_step(config, mesh)
     bar = tqdm(
-        total=num_steps, initial=start, disable=not (progress and is_main), unit="step",
+        total=num_steps,
+        initial=start,
+        disable=not (progress and is_main),
+        unit="step",
         dynamic_ncols=True,
     )
     batches: Iterator[np.ndarray] = data.iterate(dataset, start)
@@ -245,8 +254,11 @@ def fit(
                 if done % config.checkpoint_every == 0 or last:
                     checkpoint.save(mngr, done, state, config)
                 if stop:
-                    log.warning("stopping at step %d: a process got SIGTERM (its job is ending or"
-                                " being preempted); rerun to resume", done)
+                    log.warning(
+                        "stopping at step %d: a process got SIGTERM (its job is ending or"
+                        " being preempted); rerun to resume",
+                        done,
+                    )
                     break
             mngr.wait_until_finished()
             finished = True

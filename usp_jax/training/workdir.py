@@ -35,10 +35,17 @@ class WorkdirError(RuntimeError):
 
 
 #: them changes what a training step computes.
-RESUMABLE_KEYS = frozenset({
-    "num_steps", "checkpoint_every", "keep_checkpoints", "log_every",
-    "data.num_workers", "data.prefetch", "data.tfds_data_dir",
-})
+RESUMABLE_KEYS = frozenset(
+    {
+        "num_steps",
+        "checkpoint_every",
+        "keep_checkpoints",
+        "log_every",
+        "data.num_workers",
+        "data.prefetch",
+        "data.tfds_data_dir",
+    }
+)
 #: Held by a running ``fit`` inside its workdir; names the holder's pid and host.
 LOCK_FILE = "train.lock"
 #: One JSON line per resume that changed settings with ``allow_config_change``.
@@ -62,8 +69,6 @@ def folder_problem(path: str | os.PathLike) -> str | None:
     if not os.access(existing, os.W_OK | os.X_OK):
         return f": {existing} is not writable"
     return None
-
-
 
 
 def check_workdir_path(workdir: pathlib.Path) -> None:
@@ -110,7 +115,9 @@ class WorkdirLock:
         self.fd = fd
         started = time.strftime("%Y-%m-%d %H:%M:%S")
         os.ftruncate(fd, 0)
-        os.write(fd, f"pid {os.getpid()} on host {socket.gethostname()} (since {started})\n".encode())
+        os.write(
+            fd, f"pid {os.getpid()} on host {socket.gethostname()} (since {started})\n".encode()
+        )
 
     def release(self) -> None:
         if self.fd is None:
@@ -165,7 +172,9 @@ def _describe(changes: dict) -> str:
 
 
 def check_resume(
-    workdir: pathlib.Path, previous: config_lib.Config, config: config_lib.Config,
+    workdir: pathlib.Path,
+    previous: config_lib.Config,
+    config: config_lib.Config,
     allow_config_change: bool,
 ) -> dict:
     """The rule for resuming (README, "Resuming"): returns the changed keys, or raises."""
