@@ -1,0 +1,313 @@
+"""The options of the ``usp-jax`` command: argument types that reject a bad value in one line
+before anything runs, and the parser of every subcommand (``cli`` runs them)."""
+
+from __future__ import annotations
+
+import argparse
+import math
+import pathlib
+import tempfile
+
+from usp_jax.inference.detector import MAX_SIDE
+
+# The largest --upsample and --res side: beyond, the activations alone outgrow any memory.
+MAX_UPSAMPLE = 8
+
+MAX_RESOLUTION = 16384
+
+
+def _resolution(text: str) -> tuple[int, int]:
+    try:
+        height, width = (int(v) for v in text.lower().split("x"))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"resolution {text!r} is not HxW, e.g. 240x320") from None
+    if min(height, width) < 8:  # one 8x8 cell at least
+        raise argparse.ArgumentTypeError(f"resolution {text!r} needs H and W of at least 8 px")
+    if max(height, width) > MAX_RESOLUTION:
+        raise argparse.ArgumentTypeError(
+            f"resolution {text!r} exceeds {MAX_RESOLUTION} px on a side"
+        )
+    return height, width
+
+
+def _radius(text: str) -> float:
+    """An NMS radius: a finite number of pixels >= 0 (``1e9`` is fine: one point survives)."""
+    try:
+        value = float(text)
+    except ValueError:
+        value = math.nan
+    if not (math.isfinite(value) and value >= 0):
+        raise argparse.ArgumentTypeError(f"{text!r} is not a radius in px (a finite number >= 0)")
+    return value
+
+
+def _upsample(text: str) -> int:
+    value = _positive(text)
+    if value > MAX_UPSAMPLE:
+        raise argparse.ArgumentTypeError(f"{text!r} is above {MAX_UPSAMPLE}")
+    return value
+
+
+def _integer_at_least(minimum: int, kind: str):
+    """An argparse ``type`` accepting integers >= ``minimum``, with a one-line message."""
+
+    def parse(text: str) -> int:
+        try:
+            value = int(text)
+        except ValueError:
+            value = minimum - 1
+        if value < minimum:
+            raise argparse.ArgumentTypeError(f"{text!r} is not a {kind} integer")
+        return value
+
+    return parse
+
+
+_positive = _integer_at_least(1, "positive")
+_non_negative = _integer_at_least(0, "non-negative")
+
+
+def _add_upsample(parser) -> None:
+    # SIFT doubles its input for the same reason: the positions come back finer (RESULTS.md).
+    parser.add_argument(
+        "--upsample",
+        type=_upsample,
+        default=1,
+        metavar="S",
+        help="run the network on the image enlarged S times (default 1, the"
+        " paper's detector; 2: finer keypoints for 4x the compute)",
+    )
+
+
+def _add_weights_name(parser) -> None:
+    parser.add_argument(
+        "--weights",
+        metavar="NAME",
+        help="shipped weights by name (usp_jax.inference.PRETRAINED; an unknown"
+        " name lists them); default: the best on the held-out pairs",
+    )
+
+
+def _add_checkpoint(parser) -> None:
+    group = parser.add_mutually_exclusive_group()
+    group.add_argument(
+        "--checkpoint",
+        metavar="PATH",
+        help="training workdir, one of its checkpoints, or a .npz weights file"
+        " from `usp-jax export --save-weights` (default: the shipped weights)",
+    )
+    _add_weights_name(group)
+
+
+class _Parser(argparse.ArgumentParser):
+    """argparse with its errors in one line (the usage is one ``-h`` away), exit status 2."""
+
+    def error(self, message: str):
+        text = " ".join(message.split())
+        self.exit(2, f"{self.prog}: error: {text} (see {self.prog} -h)\n")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = _Parser(
+        prog="usp-jax", description="UnsuperPoint keypoints in JAX: train, evaluate, benchmark."
+    )
+    parser.add_argument("-v", "--verbose", action="store_true", help="log details")
+    sub = parser.add_subparsers(dest="command", required=True)
+
+    p = sub.add_parser("train", help="self-supervised training (resumes an existing workdir)")
+    p.add_argument("--data", help="image folder, tfds:NAME[:SPLIT], or 'sample' (bundled photos)")
+    p.add_argument(
+        "--workdir", required=True, help="checkpoints, config.json, metrics, TensorBoard"
+    )
+    p.add_argument("--config", default="paper", help="preset (paper, cpu) or experiments/*.py file")
+    p.add_argument(
+        "--steps",
+        type=_positive,
+        help="train up to this step (num_steps=N; giving both, they must agree)",
+    )
+    p.add_argument("--init", help="start from these weights (.npz from `usp-jax export`)")
+    p.add_argument(
+        "--distributed",
+        action="store_true",
+        help="join a multi-process run (one process per host or accelerator); the"
+        " cluster is detected as JAX does (SLURM, Open MPI, Cloud TPU,"
+        " Kubernetes) unless the three options below are given",
+    )
+    p.add_argument(
+        "--coordinator",
+        metavar="HOST:PORT",
+        help="address of process 0, which runs the coordination service (implies --distributed)",
+    )
+    p.add_argument(
+        "--num-processes",
+        type=_positive,
+        metavar="N",
+        help="processes in the run (implies --distributed)",
+    )
+    p.add_argument(
+        "--process-id",
+        type=_non_negative,
+        metavar="I",
+        help="this process's index, 0 to N-1 (implies --distributed)",
+    )
+    p.add_argument(
+        "--init-timeout",
+        type=_positive,
+        default=300,
+        metavar="S",
+        help="seconds to wait for every process to join before giving up (default 300)",
+    )
+    p.add_argument(
+        "--heartbeat-timeout",
+        type=_positive,
+        default=100,
+        metavar="S",
+        help="seconds of silence after which a process counts as dead (default 100)",
+    )
+    p.add_argument(
+        "--allow-config-change",
+        action="store_true",
+        help="resume a workdir although settings differ from its config.json (the"
+        " change is logged to config_changes.jsonl); without it such a resume"
+        " is refused, naming the keys",
+    )
+    p.add_argument("--no-progress", action="store_true")
+    p.add_argument(
+        "overrides",
+        nargs="*",
+        metavar="KEY=VALUE",
+        help="config overrides, e.g. loss.alpha_uni_xy=50 data.height=120",
+    )
+
+    p = sub.add_parser("evaluate", help="HPatches/Oxford metrics vs OpenCV baselines")
+    _add_checkpoint(p)
+    p.add_argument("--hpatches", required=True, help="HPatches- or Oxford-layout folder")
+    p.add_argument("--res", type=_resolution, default=(240, 320), help="HxW (default 240x320)")
+    p.add_argument("--top", type=_positive, default=300, help="points kept per image")
+    p.add_argument("--nms", type=int, default=0, choices=(0, 4), help="NMS radius in px")
+    p.add_argument("--baselines", default="orb,sift,akaze,brisk")
+    p.add_argument("--baselines-only", action="store_true", help="skip the learned model")
+    p.add_argument("--json", help="write aggregate and per-pair numbers here")
+    p.add_argument("--plots", help="folder for keypoint and match PNGs")
+    p.add_argument("--no-progress", action="store_true")
+    _add_upsample(p)
+
+    p = sub.add_parser("make-pairs", help="HPatches-layout pairs from any folder of photos")
+    p.add_argument("--images", required=True)
+    p.add_argument("--out", required=True)
+    p.add_argument("--size", type=_resolution, default=(480, 640), help="HxW of generated images")
+    p.add_argument("--views", type=_positive, default=6)
+    p.add_argument("--seed", type=int, default=0)
+    turn = p.add_mutually_exclusive_group()
+    turn.add_argument(
+        "--rotation",
+        type=float,
+        metavar="DEG",
+        help="also turn every viewpoint pair by an angle drawn uniformly from [-DEG, DEG]"
+        " (0 to 180; 180: the full circle), positive counter-clockwise",
+    )
+    turn.add_argument(
+        "--rotation-angles",
+        type=float,
+        nargs="+",
+        metavar="DEG",
+        help="the same with fixed angles in [-180, 180], used in turn, e.g. 0 45 90 135 180",
+    )
+    p.add_argument("--no-progress", action="store_true")
+
+    p = sub.add_parser("benchmark", help="frames per second, model and OpenCV side by side")
+    _add_checkpoint(p)
+    p.add_argument("--res", type=_resolution, nargs="+", default=[(240, 320), (480, 640)])
+    p.add_argument("--batch", type=_positive, nargs="+", default=[1, 10])
+    p.add_argument(
+        "--top", type=_positive, help="points kept (default: 300 up to 240x320, else 1000)"
+    )
+    p.add_argument("--repeats", type=_positive, default=10)
+    p.add_argument("--no-opencv", action="store_true")
+    p.add_argument("--json")
+    _add_upsample(p)
+
+    p = sub.add_parser("detect", help="keypoints of one image")
+    p.add_argument("image")
+    _add_checkpoint(p)
+    p.add_argument("--top", type=_positive, default=500)
+    # Spread points condition a homography or pose better: radius 4 cut the corner error of
+    # the held-out viewpoint pairs by a third (experiments/RESULTS.md).
+    p.add_argument(
+        "--nms",
+        type=_radius,
+        default=0.0,
+        help="NMS radius in px, default 0 (try 4 for homography or pose estimation)",
+    )
+    p.add_argument(
+        "--max-side",
+        type=_non_negative,
+        default=MAX_SIDE,
+        metavar="PX",
+        help=f"detect on a copy at most this long (default {MAX_SIDE}; 0: native size);"
+        " keypoints are in the original's pixels",
+    )
+    p.add_argument("--out", help="PNG with the keypoints drawn")
+    p.add_argument("--json", help="keypoints, scores and descriptors as JSON")
+    _add_upsample(p)
+
+    p = sub.add_parser("match", help="matches and a RANSAC homography between two images")
+    p.add_argument("image1")
+    p.add_argument("image2")
+    _add_checkpoint(p)
+    p.add_argument("--top", type=_positive, default=1000)
+    p.add_argument(
+        "--nms",
+        type=_radius,
+        default=4.0,
+        help="NMS radius in px, default 4 (spread points condition a homography better)",
+    )
+    p.add_argument(
+        "--max-side",
+        type=_non_negative,
+        default=MAX_SIDE,
+        metavar="PX",
+        help=f"detect on copies at most this long (default {MAX_SIDE}; 0: native size)",
+    )
+    p.add_argument("--out", help="PNG of the inlier matches and image 1's border warped by H")
+    p.add_argument("--json", help="homography, matches, inlier mask and keypoints as JSON")
+    _add_upsample(p)
+
+    p = sub.add_parser("export", help="float16 weights file or a jax.export inference artifact")
+    _add_checkpoint(p)
+    p.add_argument(
+        "--save-weights",
+        metavar="FILE",
+        help="write a float16 .npz (what --checkpoint, train --init and Detector.load take)",
+    )
+    p.add_argument("--artifact", help="write a serialised jax.export detector")
+    p.add_argument("--res", type=_resolution, default=(240, 320), help="artifact input HxW")
+    p.add_argument("--top", type=_positive, default=1000, help="artifact keeps this many points")
+    p.add_argument("--nms", type=_radius, default=0.0, help="artifact NMS radius in px")
+    _add_upsample(p)
+
+    p = sub.add_parser("demo", help="the whole pipeline on bundled photos, offline, in minutes")
+    p.add_argument(
+        "--out",
+        default=str(pathlib.Path(tempfile.gettempdir()) / "usp-jax-demo"),
+        help="folder for the pairs and PNGs",
+    )
+    _add_weights_name(p)
+    return parser
+
+
+def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
+    """`build_parser().parse_args`, except that `train` takes KEY=VALUE overrides anywhere."""
+    parser = build_parser()
+    args, extra = parser.parse_known_args(argv)
+    # argparse fills the overrides from the first run of positionals only, so in
+    # `train a=1 --workdir W b=2` it leaves `b=2` over; anything else left over is a typo.
+    if (
+        extra
+        and args.command == "train"
+        and all("=" in arg and not arg.startswith("-") for arg in extra)
+    ):
+        args.overrides += extra
+    elif extra:
+        parser.error(f"unrecognized arguments: {' '.join(extra)}")
+    return args
