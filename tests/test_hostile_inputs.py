@@ -491,13 +491,13 @@ def test_orbax_write_errors_are_recognised_as_a_full_disk():
 
 FULL_DISK_SCRIPT = """
 import errno, os, sys
-from usp_jax.training import train
+from usp_jax.training import metrics
 from usp_jax.cli import main
-original = metrics_lib.MetricsWriter.write
-def write(self, done, metrics):
+original = metrics.MetricsWriter.write
+def write(self, done, values):
     if done > 2:
         raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), self._jsonl.name)
-    original(self, done, metrics)
+    original(self, done, values)
 metrics.MetricsWriter.write = write
 sys.exit(main(sys.argv[1:]))
 """

@@ -2,9 +2,12 @@
 (docs/modules.md), and no module outgrows one concept."""
 
 import ast
+import os
 import pathlib
 import subprocess
 import sys
+
+import jax
 
 import usp_jax
 
@@ -31,8 +34,14 @@ def test_detection_imports_no_training_evaluation_or_cli_code_and_none_of_their_
         "detector.detect(np.zeros((40, 48, 3), np.uint8), top_n=5)\n"
         "print(' '.join(sorted(sys.modules)))\n"
     )
+    # The fresh interpreter shares the tests' compilation cache (conftest.py).
+    cache = {"JAX_COMPILATION_CACHE_DIR": jax.config.jax_compilation_cache_dir or ""}
     loaded = subprocess.run(
-        [sys.executable, "-c", script], capture_output=True, text=True, check=True
+        [sys.executable, "-c", script],
+        capture_output=True,
+        text=True,
+        check=True,
+        env={**os.environ, **cache},
     ).stdout.split()
     heavy = [m for m in loaded if m.split(".")[0] in HEAVY]
     ours = [

@@ -229,7 +229,7 @@ jax.config.update("jax_num_cpu_devices", int(sys.argv[1]))
 import numpy as np
 sys.path.insert(0, sys.argv[2])
 from test_train import tiny_config
-from usp_jax.training import train
+from usp_jax.training import step as step_lib
 cfg = tiny_config(batch_size=4)
 mesh = step_lib.data_mesh()
 step = step_lib.jit_train_step(cfg, mesh)
