@@ -12,6 +12,18 @@ import numpy as np
 from usp_jax.core.geometry import window_origin
 
 
+def _scale_bounds(
+    rows: int, cols: int, height: int, width: int, scale_range: tuple[float, float]
+) -> tuple[float, tuple[float, float]]:
+    """(fit, (low, high)): the largest window of the output's aspect ratio inside a rows x cols
+    photo is fit * [height, width]; the window's fraction f of it is drawn from [low, high],
+    ``scale_range`` raised where needed so that the window is at least the output size."""
+    fit = min(rows / height, cols / width)
+    smallest = min(1 / fit, 1.0)  # The fraction at which the window equals the output size.
+    low, high = (max(s, smallest) for s in scale_range)
+    return fit, (low, high)
+
+
 def random_crop(
     rng: np.random.Generator,
     image: np.ndarray,
@@ -29,9 +41,7 @@ def random_crop(
     largest window, upscaled.
     """
     rows, cols = image.shape[:2]
-    fit = min(rows / height, cols / width)  # The largest window is fit * [height, width].
-    smallest = min(1 / fit, 1.0)  # The fraction at which the window equals the output size.
-    low, high = (max(s, smallest) for s in scale_range)
+    fit, (low, high) = _scale_bounds(rows, cols, height, width, scale_range)
     fraction = rng.uniform(low, high)
     window_rows = min(rows, round(fraction * fit * height))
     window_cols = min(cols, round(fraction * fit * width))
@@ -87,9 +97,7 @@ def random_context_crop(
     rows, cols = image.shape[:2]
     side = context_side(height, width)
     origin_x, origin_y = window_origin(height, width, (side, side))
-    fit = min(rows / height, cols / width)
-    smallest = min(1 / fit, 1.0)
-    low, high = (max(s, smallest) for s in scale_range)
+    fit, (low, high) = _scale_bounds(rows, cols, height, width, scale_range)
     # Photo pixels per output pixel, the same on both axes so that a rotation is a rotation.
     step = rng.uniform(low, high) * fit
     # Pixel centres: window pixel (u, v) shows photo point (left + step * u, top + step * v).
