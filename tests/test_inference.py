@@ -11,6 +11,8 @@ from usp_jax import evaluation, inference
 from usp_jax.config import Config
 from usp_jax.core.model import ModelConfig, UnsuperPoint, fast_config, init_variables
 from usp_jax.inference import Detector, Features, nms
+from usp_jax.inference import detector as detector_lib
+from usp_jax.inference import weights as weights_lib
 from usp_jax.training import checkpoint
 
 SMALL = ModelConfig(
@@ -206,13 +208,13 @@ def test_bad_images_raise_one_line_value_error_naming_the_shape(detector, bad):
 
 def test_images_that_pad_to_one_shape_compile_once(variables, image, monkeypatch):
     traces = []
-    select = inference._select_points
+    select = detector_lib._select_points
 
     def counting(*args, **kwargs):
         traces.append(1)
         return select(*args, **kwargs)
 
-    monkeypatch.setattr(inference, "_select_points", counting)
+    monkeypatch.setattr(detector_lib, "_select_points", counting)
     fresh = Detector(variables, SMALL)
     fresh.detect(image[:37, :53])
     fresh.detect(image[:38, :54])
@@ -271,8 +273,8 @@ def test_save_weights_refuses_values_float16_cannot_hold(variables, tmp_path):
 def test_pretrained_loads_shipped_weights_by_name_or_says_how_to_train(
     variables, fast_variables, image, tmp_path, monkeypatch
 ):
-    monkeypatch.setattr(inference, "WEIGHTS_DIR", tmp_path)
-    monkeypatch.setattr(inference, "PRETRAINED", {"paper": "paper.npz", "fast": "fast.npz"})
+    monkeypatch.setattr(weights_lib, "WEIGHTS_DIR", tmp_path)
+    monkeypatch.setattr(weights_lib, "PRETRAINED", {"paper": "paper.npz", "fast": "fast.npz"})
     with pytest.raises(FileNotFoundError, match="usp-jax train"):
         Detector.pretrained()
     inference.save_weights(tmp_path / "paper.npz", variables, SMALL)
@@ -282,7 +284,7 @@ def test_pretrained_loads_shipped_weights_by_name_or_says_how_to_train(
     assert len(pretrained.detect(image).scores) == 4
     assert Detector.pretrained("paper").model_config == SMALL
     assert Detector.pretrained("fast").model_config == SMALL_FAST
-    monkeypatch.setattr(inference, "DEFAULT_PRETRAINED", "fast")
+    monkeypatch.setattr(weights_lib, "DEFAULT_PRETRAINED", "fast")
     assert Detector.pretrained().model_config == SMALL_FAST
     with pytest.raises(ValueError, match="unknown weights 'vgg16'.*paper, fast"):
         Detector.pretrained("vgg16")
@@ -300,8 +302,8 @@ def test_load_takes_a_weights_file_a_training_workdir_or_nothing_for_the_shipped
 ):
     weights = tmp_path / "paper.npz"
     inference.save_weights(weights, variables, SMALL)
-    monkeypatch.setattr(inference, "WEIGHTS_DIR", tmp_path)
-    monkeypatch.setattr(inference, "DEFAULT_PRETRAINED", "paper")
+    monkeypatch.setattr(weights_lib, "WEIGHTS_DIR", tmp_path)
+    monkeypatch.setattr(weights_lib, "DEFAULT_PRETRAINED", "paper")
     from_file = Detector.load(weights, top_n=5)
     assert from_file.model_config == SMALL and from_file.top_n == 5
     _, stored = inference.load_weights(weights)

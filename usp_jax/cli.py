@@ -292,8 +292,9 @@ def cmd_match(args) -> None:
 
 
 def cmd_export(args) -> None:
-    from usp_jax.inference import export, weights
+    from usp_jax.inference import weights
     from usp_jax.inference.detector import Detector
+    from usp_jax.inference.export import export
 
     if not (args.save_weights or args.artifact):
         raise ValueError("nothing to export: give --save-weights FILE.npz and/or --artifact FILE")
@@ -311,7 +312,7 @@ def cmd_export(args) -> None:
             nms_radius=args.nms,
             upsample=detector.upsample,
         )
-        export.export(detector, args.artifact, *args.res)
+        export(detector, args.artifact, *args.res)
         print(f"wrote {args.artifact} (jax.export, uint8 [b, {args.res[0]}, {args.res[1]}, 3])")
 
 
