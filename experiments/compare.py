@@ -12,7 +12,11 @@ from their homographies, for every method in the file (0-10, 10-20, >=20 degrees
 ranges up to 180 when some pair turns by 60 or more, as ``usp-jax make-pairs --rotation 180``
 makes them); and with ``--against``, the change of that file's UnsuperPoint against
 the first file's, in percent, with the 95% paired-bootstrap interval over the pairs that Table 1
-uses (``experiments/table1.py``).
+uses (``experiments/table1.py``). ``--intervals`` adds every method's mean with its 95% bootstrap
+interval over the pairs (the ``--against`` model as one more row, labelled by its file's folder):
+
+    python3 experiments/compare.py experiments/results/heldout_240x320.json \
+        --against experiments/results/fast-v3/heldout_240x320.json --intervals
 """
 
 from __future__ import annotations
@@ -22,7 +26,8 @@ import json
 import pathlib
 
 from usp_jax.evaluation.analysis import by_rotation, by_view, markdown_by_view
-from usp_jax.evaluation.statistics import MODEL, paired_change
+from usp_jax.evaluation.protocol import METRICS
+from usp_jax.evaluation.statistics import MODEL, mean_intervals, paired_change, per_pair
 
 
 def main() -> None:
@@ -34,6 +39,11 @@ def main() -> None:
         metavar="PAIRS",
         help="also break the viewpoint pairs down by in-plane rotation, reading "
         "their homographies from PAIRS, the evaluated folder",
+    )
+    parser.add_argument(
+        "--intervals",
+        action="store_true",
+        help="every method's mean with its 95%% bootstrap interval over the pairs",
     )
     parser.add_argument("--rounds", type=int, default=2000, help="bootstrap resamples")
     args = parser.parse_args()
@@ -51,6 +61,9 @@ def main() -> None:
         except (OSError, ValueError) as error:
             parser.error(f"--rotation {args.rotation}: {error}")
         print("\n" + markdown_by_view(rotation_table, group="rotation (deg)"))
+    if args.intervals:
+        against = {} if new_rows is None else {pathlib.Path(args.against).parent.name: new_rows}
+        print("\n" + intervals_markdown(rows, against, args.rounds))
     if new_rows is not None:
         try:
             changes = paired_change(rows, new_rows, args.rounds)
@@ -59,6 +72,24 @@ def main() -> None:
         print(f"\n{MODEL} of {args.against} against {args.results}, % change (positive = better):")
         for metric, (change, (low, high)) in changes.items():
             print(f"  {metric:4s} {change:+6.1f}%  [{low:+.1f}, {high:+.1f}]")
+
+
+def intervals_markdown(rows: list[dict], against: dict[str, list[dict]], rounds: int) -> str:
+    """A markdown table of every method's mean and 95% bootstrap interval, per metric; the model
+    rows of each ``against`` evaluation join as ``UnsuperPoint [label]``."""
+    rows = list(rows)
+    for label, other in against.items():
+        rows += [{**r, "method": f"{MODEL} [{label}]"} for r in other if r["method"] == MODEL]
+    # One pair order for every method, so the bootstrap draws the same pairs for all of them.
+    rows.sort(key=lambda r: (r["scene"], r["k"]))
+    table = mean_intervals(per_pair(rows), rounds)
+    lines = ["| method | " + " | ".join(METRICS) + " |", "|---" * (len(METRICS) + 1) + "|"]
+    for name, metrics in table.items():
+        cells = [f"{mean:.3f} [{low:.3f}, {high:.3f}]" for mean, (low, high) in metrics.values()]
+        lines.append(f"| {name} | " + " | ".join(cells) + " |")
+    pairs = len(next(iter(per_pair(rows).values()))[METRICS[0]])
+    lines.append(f"\nmean [95% bootstrap interval over the {pairs} pairs, {rounds} resamples]")
+    return "\n".join(lines)
 
 
 if __name__ == "__main__":

@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 
 from usp_jax.evaluation import analysis, paper_tables, statistics
+from usp_jax.evaluation.protocol import METRICS
 from usp_jax.training import metrics as metrics_lib
 from usp_jax.training import step as step_lib
 
@@ -416,6 +417,47 @@ def test_a_config_file_function_is_named_after_a_colon_and_a_missing_one_is_a_cl
         config_lib.load(f"{EXPERIMENTS / 'fast.py'}:nothing")
     with pytest.raises(FileNotFoundError, match="neither a preset"):
         config_lib.load(f"{EXPERIMENTS / 'absent.py'}:finetune")
+
+
+def test_mean_intervals_resample_the_pairs_alike_for_every_method_and_skip_undefined_le():
+    rng = np.random.default_rng(3)
+    ms = rng.uniform(0.2, 0.8, 40)
+    le = np.where(np.arange(40) % 4 == 0, np.nan, rng.uniform(0.5, 1.5, 40))
+    pairs = {
+        "A": {m: ms if m == "ms" else le if m == "le" else np.full(40, 0.7) for m in METRICS},
+        "B": {m: ms + 0.1 if m == "ms" else np.full(40, 0.7) for m in METRICS},
+    }
+    table = statistics.mean_intervals(pairs, rounds=300, seed=5)
+    # Known answer: the same draws done by hand.
+    draws = np.random.default_rng(5).integers(0, 40, size=(300, 40))
+    expected = np.percentile(ms[draws].mean(axis=1), [2.5, 97.5])
+    assert table["A"]["ms"][0] == pytest.approx(ms.mean())
+    assert table["A"]["ms"][1] == pytest.approx(tuple(expected))
+    assert table["B"]["ms"][1] == pytest.approx(tuple(expected + 0.1))  # the same draws
+    assert table["A"]["le"][0] == pytest.approx(np.nanmean(le))
+    mean, (low, high) = table["A"]["rs"]
+    assert mean == pytest.approx(0.7) and high - low == pytest.approx(0.0)  # no spread, no width
+
+
+def test_compare_intervals_add_the_second_files_model_as_its_own_row(tmp_path):
+    base = [
+        _pair_row(m, "v", 2, 1.0, scene=f"v_{i}") for i in range(6) for m in ("UnsuperPoint", "ORB")
+    ]
+    new = [{**r, "ms": 0.9} for r in base if r["method"] == "UnsuperPoint"]
+    (tmp_path / "fast").mkdir()
+    for path, rows in ((tmp_path / "a.json", base), (tmp_path / "fast" / "b.json", new)):
+        path.write_text(json.dumps({"pairs": rows}))
+    run = subprocess.run(
+        [sys.executable, str(EXPERIMENTS / "compare.py"), str(tmp_path / "a.json")]
+        + ["--against", str(tmp_path / "fast" / "b.json"), "--intervals", "--rounds", "50"],
+        capture_output=True,
+        text=True,
+        check=True,
+    )
+    assert "| ORB | 0.500 [0.500, 0.500] |" in run.stdout
+    assert "| UnsuperPoint [fast] | 0.500 [0.500, 0.500] |" in run.stdout
+    assert "0.900 [0.900, 0.900] |\n" in run.stdout  # its MS, the last column
+    assert "ms    +80.0%" in run.stdout
 
 
 def test_compare_prints_the_rotation_table_of_every_method_in_30_degree_ranges_up_to_180(tmp_path):

@@ -6,6 +6,7 @@ could explain). Rows are ``usp_jax.evaluation.to_json``'s "pairs".
 from __future__ import annotations
 
 import math
+import warnings
 
 import numpy as np
 
@@ -66,6 +67,27 @@ def bootstrap_intervals(
             m: tuple(float(q) for q in np.nanpercentile(changes[m], [2.5, 97.5])) for m in METRICS
         }
     return intervals
+
+
+def mean_intervals(
+    pairs: dict[str, dict[str, np.ndarray]], rounds: int = 2000, seed: int = 0
+) -> dict[str, dict[str, tuple[float, tuple[float, float]]]]:
+    """``{method: {metric: (mean, (low, high))}}``: each method's mean over the pairs and its 95%
+    percentile interval from a bootstrap over the pairs, the same draws for every method (all met
+    the same pairs, so overlapping intervals still compare in order). ``pairs`` is
+    :func:`per_pair`'s, ``{method: {metric: [P]}}``; LE skips its undefined (NaN) pairs."""
+    count = len(next(iter(pairs.values()))[METRICS[0]])
+    draws = np.random.default_rng(seed).integers(0, count, size=(rounds, count))
+    table = {}
+    for name, values in pairs.items():
+        table[name] = {}
+        for metric in METRICS:
+            with warnings.catch_warnings():  # a draw of only undefined LEs is NaN, skipped
+                warnings.simplefilter("ignore", RuntimeWarning)
+                resampled = np.nanmean(values[metric][draws], axis=1)
+            low, high = np.nanpercentile(resampled, [2.5, 97.5])
+            table[name][metric] = (float(np.nanmean(values[metric])), (float(low), float(high)))
+    return table
 
 
 def paired_change(base_rows: list[dict], new_rows: list[dict], rounds: int = 2000) -> dict:
