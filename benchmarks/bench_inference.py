@@ -109,7 +109,7 @@ def main() -> None:
 
     print(common.environment())
     ceiling = common.matmul_ceiling()
-    photos = benchmark.sample_photos()
+    photos = benchmark.benchmark_photos()
     results = {"rows": [], "networks": {}}
     for size in args.size:
         height, width = (int(v) for v in size.lower().split("x"))
