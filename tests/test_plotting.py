@@ -2,6 +2,7 @@
 
 import cv2
 import numpy as np
+import pytest
 import skimage.data
 
 from usp_jax.evaluation import Features, match_and_estimate, plotting, project_points
@@ -104,3 +105,17 @@ def test_plot_training_curves_draws_logged_metrics_and_skips_missing_keys(tmp_pa
         rows, tmp_path / "curves.png", smooth=5, stage_starts=[200]
     )
     assert png_shape(path) == (round(7.0 * plotting.DPI), round(11.0 * plotting.DPI), 3)
+
+
+def test_plot_speed_quality_has_a_column_per_size_and_rejects_no_points(tmp_path):
+    points = [
+        {"label": m, "size": s, "images_per_s": r, "ha3": 0.8, "ms": 0.6, "ours": m == "fast"}
+        for s in ("240x320", "480x640")
+        for m, r in (("fast", 50.0), ("ORB", 160.0))
+    ]
+    path = plotting.plot_speed_quality(points, tmp_path / "tradeoff.png")
+    assert png_shape(path) == (round(8.0 * plotting.DPI), round(11.0 * plotting.DPI), 3)
+    one_size = plotting.plot_speed_quality(points[:2], tmp_path / "one.png")
+    assert png_shape(one_size) == (round(8.0 * plotting.DPI), round(5.5 * plotting.DPI), 3)
+    with pytest.raises(ValueError, match="no points"):
+        plotting.plot_speed_quality([], tmp_path / "none.png")

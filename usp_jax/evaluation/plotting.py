@@ -294,3 +294,35 @@ def plot_example_pair(
         matching.homography,
         out_dir / f"{stem}_matches.png",
     )
+
+
+def plot_speed_quality(points: Sequence[dict], path: str | Path) -> Path:
+    """The speed/quality trade-off: images/s (log) against HA@3 (top row) and MS (bottom row),
+    one column per image size. Each point is a dict with ``label``, ``size`` ("240x320"),
+    ``images_per_s``, ``ha3``, ``ms`` and ``ours`` (learned networks in blue, the OpenCV
+    baselines in grey), so a reader sees which methods are faster *and* better than which."""
+    if not points:
+        raise ValueError("no points to plot")
+    sizes = list(dict.fromkeys(p["size"] for p in points))
+    figure = Figure(figsize=(5.5 * len(sizes), 8.0), layout="constrained")
+    grid = np.asarray(figure.subplots(2, len(sizes), squeeze=False))
+    for column, size in enumerate(sizes):
+        for row, (metric, name) in enumerate((("ha3", "HA@3"), ("ms", "MS"))):
+            axes = grid[row, column]
+            for point in (p for p in points if p["size"] == size):
+                colour = BLUE if point["ours"] else "0.45"
+                axes.scatter(point["images_per_s"], point[metric], color=colour, zorder=3)
+                axes.annotate(
+                    point["label"],
+                    (point["images_per_s"], point[metric]),
+                    textcoords="offset points",
+                    xytext=(5, 4),
+                    fontsize="small",
+                    color=colour,
+                )
+            axes.set_xscale("log")
+            axes.set_xlabel("images/s (log)")
+            axes.set_ylabel(name)
+            axes.set_title(f"{name} against speed, {size}")
+            axes.grid(alpha=0.3, which="both")
+    return _save(figure, path)
