@@ -11,9 +11,10 @@ RS and MS; with ``--rotation PAIRS`` the same per range of the pairs' in-plane r
 from their homographies, for every method in the file (0-10, 10-20, >=20 degrees, or 30-degree
 ranges up to 180 when some pair turns by 60 or more, as ``usp-jax make-pairs --rotation 180``
 makes them); and with ``--against``, the change of that file's UnsuperPoint against
-the first file's, in percent, with the 95% paired-bootstrap interval over the pairs that Table 1
-uses (``experiments/table1.py``). ``--intervals`` adds every method's mean with its 95% bootstrap
-interval over the pairs (the ``--against`` model as one more row, labelled by its file's folder):
+the first file's, in percent and as a difference, each with its 95% paired-bootstrap interval
+over the pairs (as Table 1's, ``experiments/table1.py``); that model also joins the rotation
+table and the intervals as the method ``UnsuperPoint [FOLDER]``, FOLDER its file's folder. ``--intervals`` adds every method's mean with its 95% bootstrap
+interval over the pairs:
 
     python3 experiments/compare.py experiments/results/heldout_240x320.json \
         --against experiments/results/fast-v3/heldout_240x320.json --intervals
@@ -27,7 +28,13 @@ import pathlib
 
 from usp_jax.evaluation.analysis import by_rotation, by_view, markdown_by_view
 from usp_jax.evaluation.protocol import METRICS
-from usp_jax.evaluation.statistics import MODEL, mean_intervals, paired_change, per_pair
+from usp_jax.evaluation.statistics import (
+    MODEL,
+    mean_intervals,
+    paired_change,
+    paired_difference,
+    per_pair,
+)
 
 
 def main() -> None:
@@ -55,33 +62,41 @@ def main() -> None:
     except (OSError, ValueError, KeyError) as error:
         parser.error(f"cannot read the evaluation JSON: {error}")
     print(markdown_by_view(by_view(rows)))
+    # The second file's model joins the first file's methods as one more, labelled, method.
+    label = pathlib.Path(args.against).parent.name if args.against else ""
+    joined = rows + ([] if new_rows is None else labelled(new_rows, label))
     if args.rotation:
         try:
-            rotation_table = by_rotation(rows, args.rotation)
+            rotation_table = by_rotation(joined, args.rotation)
         except (OSError, ValueError) as error:
             parser.error(f"--rotation {args.rotation}: {error}")
         print("\n" + markdown_by_view(rotation_table, group="rotation (deg)"))
     if args.intervals:
-        against = {} if new_rows is None else {pathlib.Path(args.against).parent.name: new_rows}
-        print("\n" + intervals_markdown(rows, against, args.rounds))
+        print("\n" + intervals_markdown(joined, args.rounds))
     if new_rows is not None:
         try:
             changes = paired_change(rows, new_rows, args.rounds)
+            differences = paired_difference(rows, new_rows, args.rounds)
         except ValueError as error:
             parser.error(f"{args.against} against {args.results}: {error}")
-        print(f"\n{MODEL} of {args.against} against {args.results}, % change (positive = better):")
+        print(f"\n{MODEL} of {args.against} against {args.results} (positive = better):")
         for metric, (change, (low, high)) in changes.items():
-            print(f"  {metric:4s} {change:+6.1f}%  [{low:+.1f}, {high:+.1f}]")
+            difference, (d_low, d_high) = differences[metric]
+            print(
+                f"  {metric:4s} {change:+6.1f}%  [{low:+.1f}, {high:+.1f}]"
+                f"   difference {difference:+.3f}  [{d_low:+.3f}, {d_high:+.3f}]"
+            )
 
 
-def intervals_markdown(rows: list[dict], against: dict[str, list[dict]], rounds: int) -> str:
-    """A markdown table of every method's mean and 95% bootstrap interval, per metric; the model
-    rows of each ``against`` evaluation join as ``UnsuperPoint [label]``."""
-    rows = list(rows)
-    for label, other in against.items():
-        rows += [{**r, "method": f"{MODEL} [{label}]"} for r in other if r["method"] == MODEL]
+def labelled(rows: list[dict], label: str) -> list[dict]:
+    """The model's rows of an evaluation, as the method ``UnsuperPoint [label]``."""
+    return [{**r, "method": f"{MODEL} [{label}]"} for r in rows if r["method"] == MODEL]
+
+
+def intervals_markdown(rows: list[dict], rounds: int) -> str:
+    """A markdown table of every method's mean and 95% bootstrap interval, per metric."""
     # One pair order for every method, so the bootstrap draws the same pairs for all of them.
-    rows.sort(key=lambda r: (r["scene"], r["k"]))
+    rows = sorted(rows, key=lambda r: (r["scene"], r["k"]))
     table = mean_intervals(per_pair(rows), rounds)
     lines = ["| method | " + " | ".join(METRICS) + " |", "|---" * (len(METRICS) + 1) + "|"]
     for name, metrics in table.items():

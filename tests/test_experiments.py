@@ -325,6 +325,23 @@ def test_paired_change_of_a_new_model_is_exact_when_every_pair_moves_alike():
         statistics.paired_change(base, new[:-1])
 
 
+def test_paired_difference_is_the_mean_difference_with_lower_le_counted_as_better():
+    base = [
+        _pair_row("UnsuperPoint", "v", 2, 1.0, scene=f"v_{i}", ms=0.02 * i, le=1.0 + 0.1 * i)
+        for i in range(30)
+    ]
+    new = [{**row, "ms": row["ms"] + 0.05, "le": row["le"] - 0.2} for row in reversed(base)]
+    difference = statistics.paired_difference(base, new, rounds=200)
+    assert difference["ms"][0] == pytest.approx(0.05)
+    assert difference["ms"][1] == pytest.approx((0.05, 0.05))  # every pair moved alike
+    assert difference["le"][0] == pytest.approx(0.2)  # 0.2 px lower: better
+    noisy = [{**row, "ms": row["ms"] + (0.1 if i % 2 else -0.1)} for i, row in enumerate(base)]
+    low, high = statistics.paired_difference(base, noisy, rounds=500)["ms"][1]
+    assert low < 0.0 < high and high - low > 0.02
+    with pytest.raises(ValueError, match="same pairs"):
+        statistics.paired_difference(base, new[:-1])
+
+
 def test_in_plane_rotation_reads_opencvs_rotation_and_the_local_jacobian_of_a_keystone():
     import cv2
 
@@ -457,7 +474,7 @@ def test_compare_intervals_add_the_second_files_model_as_its_own_row(tmp_path):
     assert "| ORB | 0.500 [0.500, 0.500] |" in run.stdout
     assert "| UnsuperPoint [fast] | 0.500 [0.500, 0.500] |" in run.stdout
     assert "0.900 [0.900, 0.900] |\n" in run.stdout  # its MS, the last column
-    assert "ms    +80.0%" in run.stdout
+    assert "ms    +80.0%" in run.stdout and "difference +0.400" in run.stdout
 
 
 def test_compare_prints_the_rotation_table_of_every_method_in_30_degree_ranges_up_to_180(tmp_path):
@@ -486,20 +503,17 @@ def test_compare_prints_the_rotation_table_of_every_method_in_30_degree_ranges_u
     # The command prints one row per method and range.
     results = tmp_path / "results.json"
     results.write_text(json.dumps({"pairs": rows}))
+    (tmp_path / "turned").mkdir()  # a second model's evaluation joins as one more method
+    (tmp_path / "turned" / "r.json").write_text(json.dumps({"pairs": rows[: len(angles)]}))
     run = subprocess.run(
-        [
-            sys.executable,
-            str(EXPERIMENTS / "compare.py"),
-            str(results),
-            "--rotation",
-            str(tmp_path),
-        ],
+        [sys.executable, str(EXPERIMENTS / "compare.py"), str(results)]
+        + ["--rotation", str(tmp_path), "--against", str(tmp_path / "turned" / "r.json")],
         capture_output=True,
         text=True,
         check=True,
     )
     printed = run.stdout.split("| rotation (deg) |")[1]
-    for method in methods:
+    for method in (*methods, "UnsuperPoint [turned]"):
         for label in ("0-30", "30-60", "90-120", "150-180"):
             assert f"| {method} | {label} | " in printed
 

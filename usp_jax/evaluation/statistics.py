@@ -90,9 +90,9 @@ def mean_intervals(
     return table
 
 
-def paired_change(base_rows: list[dict], new_rows: list[dict], rounds: int = 2000) -> dict:
-    """``{metric: (change %, (low, high))}`` of the model in ``new_rows`` against ``base_rows``:
-    positive = better (LE's sign flipped), interval from a paired bootstrap over the pairs."""
+def _model_pairs(base_rows: list[dict], new_rows: list[dict]) -> dict:
+    """:func:`per_pair` of the model's rows in two evaluations, as configurations "base" and
+    "new", matched by pair (scene, k) whatever order the files list them in."""
 
     def model_rows(rows, name):
         kept = sorted((r for r in rows if r["method"] == MODEL), key=lambda r: (r["scene"], r["k"]))
@@ -101,7 +101,13 @@ def paired_change(base_rows: list[dict], new_rows: list[dict], rounds: int = 200
     base, new = model_rows(base_rows, "base"), model_rows(new_rows, "new")
     if [(r["scene"], r["k"]) for r in base] != [(r["scene"], r["k"]) for r in new]:
         raise ValueError("the two evaluations did not score the same pairs")
-    pairs = per_pair(base + new)
+    return per_pair(base + new)
+
+
+def paired_change(base_rows: list[dict], new_rows: list[dict], rounds: int = 2000) -> dict:
+    """``{metric: (change %, (low, high))}`` of the model in ``new_rows`` against ``base_rows``:
+    positive = better (LE's sign flipped), interval from a paired bootstrap over the pairs."""
+    pairs = _model_pairs(base_rows, new_rows)
     means = {
         name: {m: float(np.nanmean(v)) for m, v in metrics.items()}
         for name, metrics in pairs.items()
@@ -109,3 +115,25 @@ def paired_change(base_rows: list[dict], new_rows: list[dict], rounds: int = 200
     changes = relative_changes(means, base="base")["new"]
     intervals = bootstrap_intervals(pairs, rounds=rounds, base="base")["new"]
     return {m: (changes[m], intervals[m]) for m in METRICS}
+
+
+def paired_difference(
+    base_rows: list[dict], new_rows: list[dict], rounds: int = 2000, seed: int = 0
+) -> dict:
+    """``{metric: (difference, (low, high))}``: the model's mean in ``new_rows`` minus its mean
+    in ``base_rows``, positive = better (LE's sign flipped), with the 95% interval of a paired
+    bootstrap over the pairs (the same draw for both evaluations)."""
+    pairs = _model_pairs(base_rows, new_rows)
+    count = len(pairs["base"][METRICS[0]])
+    draws = np.random.default_rng(seed).integers(0, count, size=(rounds, count))
+    result = {}
+    for metric in METRICS:
+        sign = -1.0 if metric == "le" else 1.0
+        base, new = pairs["base"][metric], pairs["new"][metric]
+        with warnings.catch_warnings():  # a draw of only undefined LEs is NaN, skipped
+            warnings.simplefilter("ignore", RuntimeWarning)
+            resampled = sign * (np.nanmean(new[draws], axis=1) - np.nanmean(base[draws], axis=1))
+        low, high = np.nanpercentile(resampled, [2.5, 97.5])
+        difference = sign * (np.nanmean(new) - np.nanmean(base))
+        result[metric] = (float(difference), (float(low), float(high)))
+    return result
