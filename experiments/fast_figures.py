@@ -79,7 +79,10 @@ def training_curves(out: pathlib.Path) -> None:
     rows, starts = metrics_lib.chain_stages(stages)
     ours = plotting.plot_training_curves(rows, out / "training_curves.png", stage_starts=starts)
     figure = Figure(figsize=(22.0, 7.6), layout="constrained")
-    titles = ("paper network, its 128x160 stages 1-3 (32,500 of its 38,100 steps)", "fast network, both stages (18,000 at 128x160, then 1,500 at 240x320)")
+    titles = (
+        "paper network, its 128x160 stages 1-3 (32,500 of its 38,100 steps)",
+        "fast network, both stages (18,000 at 128x160, then 1,500 at 240x320)",
+    )
     for axes, path, title in zip(
         figure.subplots(1, 2), (RESULTS / "figures" / "training_curves.png", ours), titles
     ):
