@@ -13,8 +13,8 @@ ranges up to 180 when some pair turns by 60 or more, as ``usp-jax make-pairs --r
 makes them); and with ``--against``, the change of that file's UnsuperPoint against
 the first file's, in percent and as a difference, each with its 95% paired-bootstrap interval
 over the pairs (as Table 1's, ``experiments/table1.py``); that model also joins the rotation
-table and the intervals as the method ``UnsuperPoint [FOLDER]``, FOLDER its file's folder. ``--intervals`` adds every method's mean with its 95% bootstrap
-interval over the pairs:
+table and the intervals as the method ``UnsuperPoint [FOLDER]``, FOLDER its file's folder.
+``--intervals`` adds every method's mean with its 95% bootstrap interval over the pairs:
 
     python3 experiments/compare.py experiments/results/heldout_240x320.json \
         --against experiments/results/fast-v3/heldout_240x320.json --intervals
@@ -96,14 +96,14 @@ def labelled(rows: list[dict], label: str) -> list[dict]:
 def intervals_markdown(rows: list[dict], rounds: int) -> str:
     """A markdown table of every method's mean and 95% bootstrap interval, per metric."""
     # One pair order for every method, so the bootstrap draws the same pairs for all of them.
-    rows = sorted(rows, key=lambda r: (r["scene"], r["k"]))
-    table = mean_intervals(per_pair(rows), rounds)
+    pairs = per_pair(sorted(rows, key=lambda r: (r["scene"], r["k"])))
+    table = mean_intervals(pairs, rounds)
     lines = ["| method | " + " | ".join(METRICS) + " |", "|---" * (len(METRICS) + 1) + "|"]
     for name, metrics in table.items():
         cells = [f"{mean:.3f} [{low:.3f}, {high:.3f}]" for mean, (low, high) in metrics.values()]
         lines.append(f"| {name} | " + " | ".join(cells) + " |")
-    pairs = len(next(iter(per_pair(rows).values()))[METRICS[0]])
-    lines.append(f"\nmean [95% bootstrap interval over the {pairs} pairs, {rounds} resamples]")
+    count = len(next(iter(pairs.values()))[METRICS[0]])
+    lines.append(f"\nmean [95% bootstrap interval over the {count} pairs, {rounds} resamples]")
     return "\n".join(lines)
 
 

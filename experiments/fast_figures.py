@@ -54,20 +54,24 @@ def speed_quality_points(bench: dict) -> list[dict]:
         for r in bench["rows"]
         if r["batch"] == 1
     }
+
+    def point(label, size, rate, found, ours):
+        return dict(
+            label=label, size=size, images_per_s=rate, ha3=found["ha3"], ms=found["ms"], ours=ours
+        )
+
     points = []
     for label, (network, files) in NETWORKS.items():
         for size, name in files.items():
             found = summary(RESULTS / name, "UnsuperPoint")
             if found is not None:
-                rate = rates[size, f"UnsuperPoint {network}"]
-                points.append({"label": label, "size": size, "images_per_s": rate, "ours": True})
-                points[-1].update(ha3=found["ha3"], ms=found["ms"])
+                points.append(
+                    point(label, size, rates[size, f"UnsuperPoint {network}"], found, True)
+                )
     for size in SIZES:
         for method in BASELINES:
             found = summary(RESULTS / f"heldout_{size}.json", method)
-            rate = rates[size, method]
-            points.append({"label": method, "size": size, "images_per_s": rate, "ours": False})
-            points[-1].update(ha3=found["ha3"], ms=found["ms"])
+            points.append(point(method, size, rates[size, method], found, False))
     return points
 
 

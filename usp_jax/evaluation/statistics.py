@@ -48,16 +48,28 @@ def per_pair(rows: list[dict]) -> dict[str, dict[str, np.ndarray]]:
     }
 
 
+def _draws(count: int, rounds: int, seed: int) -> np.ndarray:
+    """``[rounds, count]`` pair indices drawn with replacement: one bootstrap resample per row."""
+    return np.random.default_rng(seed).integers(0, count, size=(rounds, count))
+
+
+def _resampled_means(values: np.ndarray, draws: np.ndarray) -> np.ndarray:
+    """``[rounds]`` means of ``values`` [P] over each resample in ``draws``, skipping NaN (an
+    undefined LE); a resample of only undefined values is NaN, which the percentiles skip."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        return np.nanmean(values[draws], axis=1)
+
+
 def bootstrap_intervals(
     pairs: dict[str, dict[str, np.ndarray]], rounds: int = 2000, seed: int = 0, base: str = "C0"
 ) -> dict[str, dict[str, tuple[float, float]]]:
     """95% percentile intervals of :func:`relative_changes`, resampling the evaluation pairs with
     replacement, the same draw for every configuration (a paired bootstrap: each configuration met
     the same pairs). LE's mean skips its undefined (NaN) pairs, as ``evaluation.summarize`` does."""
-    count = len(pairs[base][METRICS[0]])
-    draws = np.random.default_rng(seed).integers(0, count, size=(rounds, count))
+    draws = _draws(len(pairs[base][METRICS[0]]), rounds, seed)
     means = {
-        name: {m: np.nanmean(values[m][draws], axis=1) for m in METRICS}
+        name: {m: _resampled_means(values[m], draws) for m in METRICS}
         for name, values in pairs.items()
     }
     intervals = {}
@@ -76,16 +88,12 @@ def mean_intervals(
     percentile interval from a bootstrap over the pairs, the same draws for every method (all met
     the same pairs, so overlapping intervals still compare in order). ``pairs`` is
     :func:`per_pair`'s, ``{method: {metric: [P]}}``; LE skips its undefined (NaN) pairs."""
-    count = len(next(iter(pairs.values()))[METRICS[0]])
-    draws = np.random.default_rng(seed).integers(0, count, size=(rounds, count))
+    draws = _draws(len(next(iter(pairs.values()))[METRICS[0]]), rounds, seed)
     table = {}
     for name, values in pairs.items():
         table[name] = {}
         for metric in METRICS:
-            with warnings.catch_warnings():  # a draw of only undefined LEs is NaN, skipped
-                warnings.simplefilter("ignore", RuntimeWarning)
-                resampled = np.nanmean(values[metric][draws], axis=1)
-            low, high = np.nanpercentile(resampled, [2.5, 97.5])
+            low, high = np.nanpercentile(_resampled_means(values[metric], draws), [2.5, 97.5])
             table[name][metric] = (float(np.nanmean(values[metric])), (float(low), float(high)))
     return table
 
@@ -124,15 +132,12 @@ def paired_difference(
     in ``base_rows``, positive = better (LE's sign flipped), with the 95% interval of a paired
     bootstrap over the pairs (the same draw for both evaluations)."""
     pairs = _model_pairs(base_rows, new_rows)
-    count = len(pairs["base"][METRICS[0]])
-    draws = np.random.default_rng(seed).integers(0, count, size=(rounds, count))
+    draws = _draws(len(pairs["base"][METRICS[0]]), rounds, seed)
     result = {}
     for metric in METRICS:
         sign = -1.0 if metric == "le" else 1.0
         base, new = pairs["base"][metric], pairs["new"][metric]
-        with warnings.catch_warnings():  # a draw of only undefined LEs is NaN, skipped
-            warnings.simplefilter("ignore", RuntimeWarning)
-            resampled = sign * (np.nanmean(new[draws], axis=1) - np.nanmean(base[draws], axis=1))
+        resampled = sign * (_resampled_means(new, draws) - _resampled_means(base, draws))
         low, high = np.nanpercentile(resampled, [2.5, 97.5])
         difference = sign * (np.nanmean(new) - np.nanmean(base))
         result[metric] = (float(difference), (float(low), float(high)))
