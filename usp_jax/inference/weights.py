@@ -27,7 +27,7 @@ from usp_jax.core.model import ModelConfig, init_variables
 #: was trained).
 WEIGHTS_DIR = importlib.resources.files("usp_jax") / "weights"
 #: Shipped weights by name -> their file in WEIGHTS_DIR. "paper": the paper's VGG network;
-#: "fast": ``core.model.fast_config()`` trained by experiments/fast.py, 4-5x the images/s but below
+#: "fast": ``core.model.fast_config()`` trained by experiments/fast.py, 4.3-5.3x the images/s but below
 #: the paper network on the held-out pairs (HA@3 0.66 vs 0.91, MS 0.57 vs 0.65; RESULTS).
 PRETRAINED = {"paper": "paper.npz", "fast": "fast.npz"}
 #: What ``Detector.pretrained()`` loads: the best of the named weights on the held-out pairs.
