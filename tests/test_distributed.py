@@ -17,6 +17,8 @@ from test_cli import TINY
 from usp_jax.cli import main
 from usp_jax.inference import weights as weights_lib
 from usp_jax.training import metrics as metrics_lib
+from usp_jax import config as config_lib
+from usp_jax.training import distributed
 from usp_jax.training.distributed import Launch, check_launch, split_address
 
 # Generous: the processes compile while the rest of the suite runs beside them.
@@ -243,3 +245,19 @@ def test_coordinator_addresses_parse_with_ipv6_brackets_and_ports_in_range():
         with pytest.raises(ValueError, match="is not HOST:PORT"):
             split_address(bad)
     check_launch(Launch("node:1234", 4, 3), batch_size=8)  # valid: no error
+
+
+def test_join_checks_the_config_and_the_launch_before_it_waits_and_names_the_process(monkeypatch):
+    joined = []
+    monkeypatch.setattr(distributed, "initialize", lambda *args: joined.append(args))
+    rotated = config_lib.override(config_lib.cpu(), ["homography.rotation_range=(-180, 180)"])
+    with pytest.raises(ValueError, match="needs data.context_window=True"):
+        distributed.join(Launch("node:1234", 2, 0), rotated)
+    with pytest.raises(ValueError, match="batch_size 5 is not divisible by the 2 processes"):
+        distributed.join(Launch("node:1234", 2, 0), config_lib.paper())
+    assert joined == []  # neither waited for the other processes
+    report = print
+    launch = Launch("node:1234", 2, 1)
+    # initialize is replaced, so JAX still counts this process alone.
+    assert distributed.join(launch, config_lib.cpu(), report) == "process 0 of 1: "
+    assert joined == [(launch, report)]
