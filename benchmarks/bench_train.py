@@ -35,8 +35,7 @@ from jax.sharding import NamedSharding
 from jax.sharding import PartitionSpec as P
 
 from usp_jax import config as config_lib
-from usp_jax.core import geometry, losses
-from usp_jax.core.model import UnsuperPoint
+from usp_jax.core import geometry
 from usp_jax.training import data
 from usp_jax.training import step as step_lib
 
@@ -93,23 +92,15 @@ def check_against_torch(config: config_lib.Config, images: np.ndarray) -> dict:
     import torch_reference
 
     state = step_lib.create_state(config)
-    batch, height, width, _ = images.shape
     floats = jnp.asarray(images, jnp.float32) / 255.0
     images_a, images_b, homographies = jax.jit(
         lambda key, x: step_lib.make_branches(key, x, config.homography, config.photometric)
     )(jax.random.PRNGKey(2), floats)
-    model = UnsuperPoint(config.model)
 
-    def loss_fn(params):
-        pred, _ = model.apply(
-            {"params": params, "batch_stats": state.batch_stats},
-            jnp.concatenate([images_a, images_b]),
-            train=True,
-            mutable=["batch_stats"],
-        )
-        pred_a = jax.tree.map(lambda x: x[:batch], pred)
-        pred_b = jax.tree.map(lambda x: x[batch:], pred)
-        return losses.total_loss(pred_a, pred_b, homographies, height, width, config.loss)[0]
+    def loss_fn(params):  # the train step's loss (step.siamese_loss), without its metrics
+        return step_lib.siamese_loss(
+            params, state.batch_stats, images_a, images_b, homographies, config
+        )[0]
 
     jax_loss, jax_grads = jax.jit(jax.value_and_grad(loss_fn))(state.params)
     reference = torch_reference.TrainStep(config)

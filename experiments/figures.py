@@ -76,20 +76,16 @@ def main() -> None:
     out = pathlib.Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     d, scores, rel_x = pair_statistics(args.checkpoint, args.photos)
-    plotting.plot_histograms(
-        {"point-pairs": d},
-        out / "fig4a_pair_distances.png",
-        bins=40,
-        xlabel="d_k (px)",
-        title="Point-pair distances d_k (paper Fig. 4a)",
-    )
-    plotting.plot_histograms(
-        {"all points": scores},
-        out / "fig4b_scores.png",
-        bins=40,
-        xlabel="score",
-        title="Scores (paper Fig. 4b)",
-    )
+    fig4 = {  # file: (values by label, x label, title)
+        "fig4a_pair_distances.png": (
+            {"point-pairs": d},
+            "d_k (px)",
+            "Point-pair distances d_k (paper Fig. 4a)",
+        ),
+        "fig4b_scores.png": ({"all points": scores}, "score", "Scores (paper Fig. 4b)"),
+    }
+    for file, (values, xlabel, title) in fig4.items():
+        plotting.plot_histograms(values, out / file, bins=40, xlabel=xlabel, title=title)
     series = {"with uniform loss": 8 * rel_x}
     if args.without_uniform:
         series["without uniform loss"] = 8 * pair_statistics(args.without_uniform, args.photos)[2]

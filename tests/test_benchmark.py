@@ -2,8 +2,9 @@ import json
 
 import jax
 import pytest
+from conftest import SMALL_MODEL
 
-from usp_jax.core.model import ModelConfig, fast_config, init_variables
+from usp_jax.core.model import fast_config, init_variables
 from usp_jax.evaluation.benchmark import (
     OPENCV_DETECTORS,
     benchmark,
@@ -12,16 +13,12 @@ from usp_jax.evaluation.benchmark import (
 )
 from usp_jax.inference import Detector
 
-SMALL = ModelConfig(
-    backbone_channels=(8, 8, 8, 8, 16, 16, 16, 16), head_channels=16, descriptor_dim=16
-)
-
 
 @pytest.fixture(scope="module")
 def detector():
     # Jitted, the initialisation is one compile that the persistent cache (conftest) keeps.
-    variables = init_variables(jax.random.PRNGKey(0), SMALL)
-    return Detector(variables, SMALL)
+    variables = init_variables(jax.random.PRNGKey(0), SMALL_MODEL)
+    return Detector(variables, SMALL_MODEL)
 
 
 @pytest.fixture(scope="module")
@@ -65,7 +62,7 @@ def test_format_benchmark_is_the_papers_table_layout(tiny_run):
 
 
 def test_an_upsampled_detector_is_recorded_and_named_in_the_table(detector):
-    upsampled = Detector(detector.variables, SMALL, upsample=2)
+    upsampled = Detector(detector.variables, SMALL_MODEL, upsample=2)
     result = benchmark(
         upsampled,
         resolutions=((32, 48),),

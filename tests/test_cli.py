@@ -4,20 +4,10 @@ import cv2
 import jax
 import numpy as np
 import pytest
+from conftest import TINY_RUN, USP_JAX, train_args
 
 from usp_jax import evaluation
 from usp_jax.cli import main, parse_args
-
-TINY = [
-    "model.backbone_channels=(8, 8, 8, 8, 16, 16, 16, 16)",
-    "model.head_channels=16",
-    "model.descriptor_dim=16",
-    "data.height=32",
-    "data.width=48",
-    "batch_size=2",
-    "checkpoint_every=2",
-    "log_every=1",
-]
 
 
 @pytest.fixture(scope="module")
@@ -47,24 +37,7 @@ def pairs_dir(tmp_path_factory, photo):
 @pytest.fixture(scope="module")
 def workdir(tmp_path_factory):
     work = tmp_path_factory.mktemp("run")
-    assert (
-        main(
-            [
-                "train",
-                "--data",
-                "sample",
-                "--workdir",
-                str(work),
-                "--config",
-                "cpu",
-                "--steps",
-                "2",
-                "--no-progress",
-                *TINY,
-            ]
-        )
-        == 0
-    )
+    assert main(train_args(work, 2, *TINY_RUN)) == 0
     return work
 
 
@@ -161,105 +134,27 @@ def test_evaluate_baselines_prints_table_and_writes_json(pairs_dir, tmp_path, ca
 def test_train_resumes_and_the_checkpoint_detects_and_evaluates(
     workdir, pairs_dir, tmp_path, photo, capsys
 ):
-    assert (
-        main(
-            [
-                "train",
-                "--data",
-                "sample",
-                "--workdir",
-                str(workdir),
-                "--config",
-                "cpu",
-                "--steps",
-                "4",
-                "--no-progress",
-                *TINY,
-            ]
-        )
-        == 0
-    )
+    assert main(train_args(workdir, 4, *TINY_RUN)) == 0
     assert "done: step 4" in capsys.readouterr().out
     image = tmp_path / "a.png"
     cv2.imwrite(str(image), photo[:100, :150])
     out = tmp_path / "k.json"
-    assert (
-        main(
-            [
-                "detect",
-                str(image),
-                "--checkpoint",
-                str(workdir),
-                "--top",
-                "20",
-                "--json",
-                str(out),
-                "--out",
-                str(tmp_path / "k.png"),
-            ]
-        )
-        == 0
-    )
+    detect = ["detect", str(image), "--checkpoint", str(workdir), "--top", "20", "--json", str(out)]
+    assert main([*detect, "--out", str(tmp_path / "k.png")]) == 0
     result = json.loads(out.read_text())
     assert len(result["keypoints"]) == 20 and len(result["descriptors"][0]) == 16
     # With radius-4 NMS no two of the kept points lie within 4 px of each other.
-    assert (
-        main(
-            [
-                "detect",
-                str(image),
-                "--checkpoint",
-                str(workdir),
-                "--top",
-                "20",
-                "--nms",
-                "4",
-                "--json",
-                str(out),
-            ]
-        )
-        == 0
-    )
+    assert main([*detect, "--nms", "4"]) == 0
     spread = np.asarray(json.loads(out.read_text())["keypoints"])
     gaps = np.linalg.norm(spread[:, None] - spread[None], axis=-1) + 1e9 * np.eye(len(spread))
     assert gaps.min() > 4
     assert (tmp_path / "k.png").stat().st_size > 0
-    assert (
-        main(
-            [
-                "evaluate",
-                "--hpatches",
-                str(pairs_dir),
-                "--checkpoint",
-                str(workdir),
-                "--baselines",
-                "orb",
-                "--plots",
-                str(tmp_path / "plots"),
-                "--no-progress",
-            ]
-        )
-        == 0
-    )
+    evaluate = ["evaluate", "--hpatches", str(pairs_dir), "--checkpoint", str(workdir)]
+    evaluate += ["--no-progress"]
+    assert main([*evaluate, "--baselines", "orb", "--plots", str(tmp_path / "plots")]) == 0
     assert "UnsuperPoint" in capsys.readouterr().out
     assert list((tmp_path / "plots").glob("*_matches.png"))
-    assert (
-        main(
-            [
-                "evaluate",
-                "--hpatches",
-                str(pairs_dir),
-                "--checkpoint",
-                str(workdir),
-                "--baselines",
-                "",
-                "--upsample",
-                "2",
-                "--no-progress",
-            ]
-        )
-        == 0
-    )
+    assert main([*evaluate, "--baselines", "", "--upsample", "2"]) == 0
     assert "model on 2x enlarged images" in capsys.readouterr().out
 
 
@@ -485,28 +380,11 @@ def test_detect_with_named_weights_uses_that_network(photo, tmp_path, monkeypatc
 
 def test_verbose_flag_shows_usp_jax_info_lines_although_imports_install_a_root_handler(tmp_path):
     import subprocess
-    import sys
 
     def train(*flags):
         # A fresh interpreter: the package's imports run before the CLI configures logging.
         return subprocess.run(
-            [
-                sys.executable,
-                "-m",
-                "usp_jax",
-                *flags,
-                "train",
-                "--data",
-                "sample",
-                "--workdir",
-                str(tmp_path / "w"),
-                "--config",
-                "cpu",
-                "--steps",
-                str(len(flags) + 1),
-                "--no-progress",
-                *TINY,
-            ],
+            [*USP_JAX, *flags, *train_args(tmp_path / "w", len(flags) + 1, *TINY_RUN)],
             capture_output=True,
             text=True,
             timeout=600,

@@ -6,16 +6,17 @@ import re
 import signal
 import socket
 import subprocess
-import sys
 import time
 
 import jax
 import numpy as np
 import pytest
-from test_cli import TINY
+from conftest import TINY, USP_JAX, compilation_cache_env, train_args
 
+from usp_jax import config as config_lib
 from usp_jax.cli import main
 from usp_jax.inference import weights as weights_lib
+from usp_jax.training import distributed
 from usp_jax.training import metrics as metrics_lib
 from usp_jax.training.distributed import Launch, check_launch, split_address
 
@@ -30,21 +31,7 @@ def free_port() -> int:
 
 
 def train_argv(workdir, steps, *extra) -> list[str]:
-    return [
-        sys.executable,
-        "-m",
-        "usp_jax",
-        "train",
-        "--data",
-        "sample",
-        "--workdir",
-        str(workdir),
-        "--steps",
-        str(steps),
-        "--no-progress",
-        *TINY,
-        *extra,
-    ]
+    return [*USP_JAX, *train_args(workdir, steps, "--no-progress", *TINY, *extra)]
 
 
 def start(argv, devices=1) -> subprocess.Popen:
@@ -56,10 +43,9 @@ def start(argv, devices=1) -> subprocess.Popen:
         # these short runs; every run here is compiled alike, so they still compute the same.
         "XLA_FLAGS": f"--xla_force_host_platform_device_count={devices}"
         " --xla_backend_optimization_level=0",
-        # The tests' compilation cache (conftest.py): process 0 of the resumed run, and every
-        # run of a rerun, compile nothing. (JAX lets only process 0 write it.)
-        "JAX_COMPILATION_CACHE_DIR": jax.config.jax_compilation_cache_dir or "",
-        "JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS": "0.5",
+        # The tests' compilation cache: process 0 of the resumed run, and every run of a rerun,
+        # compile nothing. (JAX lets only process 0 write it.)
+        **compilation_cache_env(),
     }
     return subprocess.Popen(
         argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env
@@ -243,3 +229,19 @@ def test_coordinator_addresses_parse_with_ipv6_brackets_and_ports_in_range():
         with pytest.raises(ValueError, match="is not HOST:PORT"):
             split_address(bad)
     check_launch(Launch("node:1234", 4, 3), batch_size=8)  # valid: no error
+
+
+def test_join_checks_the_config_and_the_launch_before_it_waits_and_names_the_process(monkeypatch):
+    joined = []
+    monkeypatch.setattr(distributed, "initialize", lambda *args: joined.append(args))
+    rotated = config_lib.override(config_lib.cpu(), ["homography.rotation_range=(-180, 180)"])
+    with pytest.raises(ValueError, match="needs data.context_window=True"):
+        distributed.join(Launch("node:1234", 2, 0), rotated)
+    with pytest.raises(ValueError, match="batch_size 5 is not divisible by the 2 processes"):
+        distributed.join(Launch("node:1234", 2, 0), config_lib.paper())
+    assert joined == []  # neither waited for the other processes
+    report = print
+    launch = Launch("node:1234", 2, 1)
+    # initialize is replaced, so JAX still counts this process alone.
+    assert distributed.join(launch, config_lib.cpu(), report) == "process 0 of 1: "
+    assert joined == [(launch, report)]

@@ -12,45 +12,16 @@ import sys
 import jax
 import numpy as np
 import pytest
+from conftest import SMALL_MODEL, TINY_RUN, USP_JAX, tiny_config, train_args
 
 from usp_jax import config as config_lib
 from usp_jax import inference
 from usp_jax.cli import main
-from usp_jax.core.model import ModelConfig
 from usp_jax.inference import nms
-from usp_jax.training import checkpoint, data, train
+from usp_jax.training import checkpoint, train
 from usp_jax.training import metrics as metrics_lib
 from usp_jax.training import step as step_lib
 from usp_jax.training import workdir as workdir_lib
-
-SMALL_MODEL = ModelConfig(
-    backbone_channels=(8, 8, 8, 8, 16, 16, 16, 16), head_channels=16, descriptor_dim=16
-)
-TINY = [
-    "--config",
-    "cpu",
-    "--no-progress",
-    "model.backbone_channels=(8, 8, 8, 8, 16, 16, 16, 16)",
-    "model.head_channels=16",
-    "model.descriptor_dim=16",
-    "data.height=32",
-    "data.width=48",
-    "batch_size=2",
-    "checkpoint_every=2",
-    "log_every=1",
-]
-
-
-def tiny_config(**changes) -> config_lib.Config:
-    base = config_lib.Config(
-        model=SMALL_MODEL,
-        data=data.DataConfig(source="sample", height=32, width=48, num_workers=2),
-        batch_size=2,
-        num_steps=2,
-        log_every=1,
-        checkpoint_every=2,
-    )
-    return config_lib.override(base, [f"{k}={v}" for k, v in changes.items()])
 
 
 def one_error_line(capsys, command: str) -> str:
@@ -84,16 +55,16 @@ def one_error_line(capsys, command: str) -> str:
 )
 def test_a_bad_config_value_is_one_line_and_leaves_no_workdir(override, message, tmp_path, capsys):
     workdir = tmp_path / "w"
-    assert main(["train", "--data", "sample", "--workdir", str(workdir), *TINY, override]) == 2
+    assert main(["train", "--data", "sample", "--workdir", str(workdir), *TINY_RUN, override]) == 2
     assert message in one_error_line(capsys, "train")
     assert not workdir.exists()
 
 
 def test_steps_and_num_steps_must_agree_and_negatives_are_refused(tmp_path, capsys):
     workdir = str(tmp_path / "w")
-    assert main(["train", "--workdir", workdir, "--steps", "2", "num_steps=-1", *TINY]) == 2
+    assert main(["train", "--workdir", workdir, "--steps", "2", "num_steps=-1", *TINY_RUN]) == 2
     assert "num_steps=-1 must be >= 1" in one_error_line(capsys, "train")
-    assert main(["train", "--workdir", workdir, "--steps", "2", "num_steps=3", *TINY]) == 2
+    assert main(["train", "--workdir", workdir, "--steps", "2", "num_steps=3", *TINY_RUN]) == 2
     assert "--steps 2 and num_steps=3 disagree" in one_error_line(capsys, "train")
     assert not (tmp_path / "w").exists()
 
@@ -168,7 +139,7 @@ def test_unwritable_outputs_are_one_line_before_any_work(tmp_path, capsys):
         (["detect", "a.png", "--json", str(afile / "k.json")], "detect", "afile"),
         (["demo", "--out", str(afile)], "demo", "is not a folder"),
         (["make-pairs", "--images", "x", "--out", str(afile / "p")], "make-pairs", "afile"),
-        (["train", "--workdir", str(afile), *TINY], "train", "exists and is not a folder"),
+        (["train", "--workdir", str(afile), *TINY_RUN], "train", "exists and is not a folder"),
     ]
     for argv, command, message in cases:
         assert main(argv) == 2, argv
@@ -179,7 +150,7 @@ def test_unwritable_outputs_are_one_line_before_any_work(tmp_path, capsys):
 def test_a_workdir_in_a_read_only_folder_is_one_line(tmp_path, capsys, monkeypatch):
     # Root ignores permission bits, so the check itself is made to answer "not writable".
     monkeypatch.setattr(workdir_lib.os, "access", lambda path, mode: False)
-    assert main(["train", "--workdir", str(tmp_path / "w"), *TINY]) == 2
+    assert main(["train", "--workdir", str(tmp_path / "w"), *TINY_RUN]) == 2
     assert "is not writable" in one_error_line(capsys, "train")
     assert not (tmp_path / "w").exists()
 
@@ -387,7 +358,7 @@ def test_a_damaged_config_record_is_one_line(tmp_path, capsys):
     workdir = tmp_path / "run"
     workdir.mkdir()
     (workdir / "config.json").write_text("{not json")
-    assert main(["train", "--workdir", str(workdir), *TINY]) == 2
+    assert main(["train", "--workdir", str(workdir), *TINY_RUN]) == 2
     assert "config.json is not a readable usp-jax config" in one_error_line(capsys, "train")
     assert (workdir / "config.json").read_text() == "{not json"
 
@@ -403,19 +374,7 @@ def test_a_second_train_on_a_locked_workdir_is_told_who_holds_it(tmp_path):
     lock = workdir_lib.WorkdirLock(workdir)
     try:
         result = subprocess.run(
-            [
-                sys.executable,
-                "-m",
-                "usp_jax",
-                "train",
-                "--data",
-                "sample",
-                "--workdir",
-                str(workdir),
-                "--steps",
-                "2",
-                *TINY,
-            ],
+            [*USP_JAX, *train_args(workdir, 2, *TINY_RUN)],
             capture_output=True,
             text=True,
             timeout=300,
@@ -506,19 +465,7 @@ sys.exit(main(sys.argv[1:]))
 def test_a_full_disk_is_one_line_from_the_command(tmp_path):
     workdir = tmp_path / "run"
     result = subprocess.run(
-        [
-            sys.executable,
-            "-c",
-            FULL_DISK_SCRIPT,
-            "train",
-            "--data",
-            "sample",
-            "--workdir",
-            str(workdir),
-            "--steps",
-            "4",
-            *TINY,
-        ],
+        [sys.executable, "-c", FULL_DISK_SCRIPT, *train_args(workdir, 4, *TINY_RUN)],
         capture_output=True,
         text=True,
         timeout=300,
@@ -542,19 +489,7 @@ def test_a_really_full_tmpfs_is_one_line(tmp_path):
         pytest.skip("this container may not mount a tmpfs")
     try:
         result = subprocess.run(
-            [
-                sys.executable,
-                "-m",
-                "usp_jax",
-                "train",
-                "--data",
-                "sample",
-                "--workdir",
-                str(mount / "run"),
-                "--steps",
-                "2",
-                *TINY,
-            ],
+            [*USP_JAX, *train_args(mount / "run", 2, *TINY_RUN)],
             capture_output=True,
             text=True,
             timeout=300,

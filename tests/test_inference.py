@@ -6,18 +6,16 @@ import jax
 import numpy as np
 import optax
 import pytest
+from conftest import SMALL_MODEL
 
 from usp_jax import evaluation, inference
 from usp_jax.config import Config
-from usp_jax.core.model import ModelConfig, UnsuperPoint, fast_config, init_variables
+from usp_jax.core.model import UnsuperPoint, fast_config, init_variables
 from usp_jax.inference import Detector, Features, nms
 from usp_jax.inference import detector as detector_lib
 from usp_jax.inference import weights as weights_lib
 from usp_jax.training import checkpoint
 
-SMALL = ModelConfig(
-    backbone_channels=(8, 8, 8, 8, 16, 16, 16, 16), head_channels=16, descriptor_dim=16
-)
 SMALL_FAST = fast_config(
     backbone_channels=(4, 8, 8, 16), head_channels=8, descriptor_head_channels=8, descriptor_dim=16
 )
@@ -38,7 +36,7 @@ def calibrated_variables(config, photo):
 
 @pytest.fixture(scope="module")
 def variables(photo):
-    return calibrated_variables(SMALL, photo)
+    return calibrated_variables(SMALL_MODEL, photo)
 
 
 @pytest.fixture(scope="module")
@@ -48,7 +46,7 @@ def fast_variables(photo):
 
 @pytest.fixture(scope="module")
 def detector(variables):
-    return Detector(variables, SMALL)
+    return Detector(variables, SMALL_MODEL)
 
 
 @pytest.fixture(scope="module")
@@ -85,7 +83,9 @@ def test_detect_odd_size_returns_sorted_unit_points_inside_image(detector, image
 
 def test_detect_returns_the_networks_points_sorted_by_score(detector, variables, image):
     features = detector.detect(image)
-    predictions = UnsuperPoint(SMALL).apply(variables, image[None] / np.float32(255), train=False)
+    predictions = UnsuperPoint(SMALL_MODEL).apply(
+        variables, image[None] / np.float32(255), train=False
+    )
     order = np.argsort(-np.asarray(predictions.scores[0]), kind="stable")
     np.testing.assert_allclose(features.keypoints, predictions.keypoints[0][order], atol=1e-4)
     np.testing.assert_allclose(features.descriptors, predictions.descriptors[0][order], atol=1e-4)
@@ -144,7 +144,7 @@ def test_radius_nms_matches_evaluation_nms_radius(radius, cell):
 def test_detector_nms_keeps_points_apart_like_evaluation(detector, variables, image):
     radius = 10.0
     candidates = detector.detect(image[:37, :53])
-    kept = Detector(variables, SMALL, nms_radius=radius).detect(image[:37, :53])
+    kept = Detector(variables, SMALL_MODEL, nms_radius=radius).detect(image[:37, :53])
     distances = np.linalg.norm(kept.keypoints[:, None] - kept.keypoints[None], axis=-1)
     assert np.all(distances[~np.eye(len(distances), dtype=bool)] > radius)
     expected = nms.radius_nms_host(candidates.keypoints, candidates.scores, radius)
@@ -159,8 +159,8 @@ def test_upsample_equals_the_network_on_an_opencv_enlarged_image_mapped_back(var
     image = (photo[100:164, 100:196] // 16 * 16).astype(np.uint8)
     height, width = image.shape[:2]
     enlarged = cv2.resize(image, (2 * width, 2 * height), interpolation=cv2.INTER_LINEAR)
-    on_enlarged = Detector(variables, SMALL).detect(enlarged)
-    upsampled = Detector(variables, SMALL, upsample=2).detect(image)
+    on_enlarged = Detector(variables, SMALL_MODEL).detect(enlarged)
+    upsampled = Detector(variables, SMALL_MODEL, upsample=2).detect(image)
     assert len(upsampled.scores) == (height // 4) * (width // 4)
     mapped = (on_enlarged.keypoints + 0.5) / 2 - 0.5
     assert_same_features(upsampled, on_enlarged._replace(keypoints=mapped), atol=1e-4)
@@ -169,9 +169,9 @@ def test_upsample_equals_the_network_on_an_opencv_enlarged_image_mapped_back(var
 
 def test_upsample_with_nms_and_padding_keeps_points_inside_and_apart(variables, image):
     odd = image[:37, :53]
-    candidates = Detector(variables, SMALL, upsample=2).detect(odd)
+    candidates = Detector(variables, SMALL_MODEL, upsample=2).detect(odd)
     assert np.all(inside(candidates.keypoints, 37, 53))
-    kept = Detector(variables, SMALL, upsample=2, nms_radius=4).detect(odd)
+    kept = Detector(variables, SMALL_MODEL, upsample=2, nms_radius=4).detect(odd)
     expected = nms.radius_nms_host(candidates.keypoints, candidates.scores, 4.0)
     assert len(expected) < len(candidates.scores)
     assert_same_features(kept, evaluation.Features(*(a[expected] for a in candidates)))
@@ -180,12 +180,12 @@ def test_upsample_with_nms_and_padding_keeps_points_inside_and_apart(variables, 
 @pytest.mark.parametrize("upsample", [0, -2, 1.5, True])
 def test_upsample_must_be_a_positive_integer(variables, upsample):
     with pytest.raises(ValueError, match="upsample must be a positive integer"):
-        Detector(variables, SMALL, upsample=upsample)
+        Detector(variables, SMALL_MODEL, upsample=upsample)
 
 
 def test_border_drops_points_near_the_edges(detector, variables, image):
     everything = detector.detect(image[:37, :53])
-    kept = Detector(variables, SMALL, border=6).detect(image[:37, :53])
+    kept = Detector(variables, SMALL_MODEL, border=6).detect(image[:37, :53])
     expected = inside(everything.keypoints, 37, 53, border=6)
     assert 0 < expected.sum() < len(expected)
     assert_same_features(kept, evaluation.Features(*(a[expected] for a in everything)))
@@ -215,7 +215,7 @@ def test_images_that_pad_to_one_shape_compile_once(variables, image, monkeypatch
         return select(*args, **kwargs)
 
     monkeypatch.setattr(detector_lib, "_select_points", counting)
-    fresh = Detector(variables, SMALL)
+    fresh = Detector(variables, SMALL_MODEL)
     fresh.detect(image[:37, :53])
     fresh.detect(image[:38, :54])
     fresh.detect(image)
@@ -235,9 +235,9 @@ def test_detect_batch_equals_per_image_results(detector, image, photo):
 
 def test_weights_round_trip_in_float16(variables, tmp_path):
     path = tmp_path / "weights.npz"
-    inference.save_weights(path, variables, SMALL)
+    inference.save_weights(path, variables, SMALL_MODEL)
     config, loaded = inference.load_weights(path)
-    assert config == SMALL
+    assert config == SMALL_MODEL
     flat = jax.tree_util.tree_leaves_with_path(variables)
     assert [p for p, _ in flat] == [p for p, _ in jax.tree_util.tree_leaves_with_path(loaded)]
     for (_, original), restored in zip(flat, jax.tree.leaves(loaded)):
@@ -249,7 +249,7 @@ def test_corrupt_or_truncated_weights_files_are_a_clear_error(variables, tmp_pat
     junk = tmp_path / "junk.npz"
     junk.write_bytes(b"not an npz")
     good = tmp_path / "good.npz"
-    inference.save_weights(good, variables, SMALL)
+    inference.save_weights(good, variables, SMALL_MODEL)
     truncated = tmp_path / "truncated.npz"
     truncated.write_bytes(good.read_bytes()[: good.stat().st_size // 2])
     for path in (junk, truncated):
@@ -267,7 +267,7 @@ def test_save_weights_refuses_values_float16_cannot_hold(variables, tmp_path):
         "batch_stats": jax.tree.map(lambda x: np.full_like(x, 1e6), variables["batch_stats"]),
     }
     with pytest.raises(ValueError, match="float16"):
-        inference.save_weights(tmp_path / "w.npz", huge, SMALL)
+        inference.save_weights(tmp_path / "w.npz", huge, SMALL_MODEL)
 
 
 def test_pretrained_loads_shipped_weights_by_name_or_says_how_to_train(
@@ -277,12 +277,12 @@ def test_pretrained_loads_shipped_weights_by_name_or_says_how_to_train(
     monkeypatch.setattr(weights_lib, "PRETRAINED", {"paper": "paper.npz", "fast": "fast.npz"})
     with pytest.raises(FileNotFoundError, match="usp-jax train"):
         Detector.pretrained()
-    inference.save_weights(tmp_path / "paper.npz", variables, SMALL)
+    inference.save_weights(tmp_path / "paper.npz", variables, SMALL_MODEL)
     inference.save_weights(tmp_path / "fast.npz", fast_variables, SMALL_FAST)
     pretrained = Detector.pretrained(top_n=4)
-    assert pretrained.model_config == SMALL  # the default is the paper network's
+    assert pretrained.model_config == SMALL_MODEL  # the default is the paper network's
     assert len(pretrained.detect(image).scores) == 4
-    assert Detector.pretrained("paper").model_config == SMALL
+    assert Detector.pretrained("paper").model_config == SMALL_MODEL
     assert Detector.pretrained("fast").model_config == SMALL_FAST
     monkeypatch.setattr(weights_lib, "DEFAULT_PRETRAINED", "fast")
     assert Detector.pretrained().model_config == SMALL_FAST
@@ -301,13 +301,15 @@ def test_load_takes_a_weights_file_a_training_workdir_or_nothing_for_the_shipped
     variables, detector, image, tmp_path, monkeypatch
 ):
     weights = tmp_path / "paper.npz"
-    inference.save_weights(weights, variables, SMALL)
+    inference.save_weights(weights, variables, SMALL_MODEL)
     monkeypatch.setattr(weights_lib, "WEIGHTS_DIR", tmp_path)
     monkeypatch.setattr(weights_lib, "DEFAULT_PRETRAINED", "paper")
     from_file = Detector.load(weights, top_n=5)
-    assert from_file.model_config == SMALL and from_file.top_n == 5
+    assert from_file.model_config == SMALL_MODEL and from_file.top_n == 5
     _, stored = inference.load_weights(weights)
-    assert_same_features(from_file.detect(image), Detector(stored, SMALL).detect(image, top_n=5))
+    assert_same_features(
+        from_file.detect(image), Detector(stored, SMALL_MODEL).detect(image, top_n=5)
+    )
     np.testing.assert_array_equal(
         Detector.load().detect(image, top_n=5).keypoints, from_file.detect(image).keypoints
     )
@@ -326,10 +328,10 @@ def test_from_checkpoint_restores_the_trained_variables(variables, detector, ima
         "key": jax.random.PRNGKey(1),
     }
     mngr = checkpoint.manager(tmp_path / "checkpoints")
-    checkpoint.save(mngr, 7, state, Config(model=SMALL))
+    checkpoint.save(mngr, 7, state, Config(model=SMALL_MODEL))
     mngr.wait_until_finished()
     restored = Detector.from_checkpoint(tmp_path)
-    assert restored.model_config == SMALL
+    assert restored.model_config == SMALL_MODEL
     assert_same_features(restored.detect(image), detector.detect(image))
 
 
@@ -338,7 +340,9 @@ def test_exported_detector_runs_without_the_model(
     variables, fast_variables, image, tmp_path, network, upsample
 ):
     path = tmp_path / "detector.jax"
-    weights, config = {"paper": (variables, SMALL), "fast": (fast_variables, SMALL_FAST)}[network]
+    weights, config = {"paper": (variables, SMALL_MODEL), "fast": (fast_variables, SMALL_FAST)}[
+        network
+    ]
     source = Detector(weights, config, top_n=6, nms_radius=10, upsample=upsample)
     inference.export(source, path, 37, 53)
     run = inference.load_exported(path)
@@ -351,11 +355,13 @@ def test_exported_detector_runs_without_the_model(
 
 
 def test_as_method_returns_every_candidate_for_uniform_evaluation(variables, image):
-    method = evaluation.as_method(Detector(variables, SMALL, top_n=3, nms_radius=10, border=4))
+    method = evaluation.as_method(
+        Detector(variables, SMALL_MODEL, top_n=3, nms_radius=10, border=4)
+    )
     features = method.detect(image)
     assert method.name == "UnsuperPoint" and method.norm == cv2.NORM_L2
     assert len(features.scores) == (40 // 8) * (56 // 8)
-    upsampled = evaluation.as_method(Detector(variables, SMALL, top_n=3, upsample=2))
+    upsampled = evaluation.as_method(Detector(variables, SMALL_MODEL, top_n=3, upsample=2))
     assert len(upsampled.detect(image).scores) == (40 // 4) * (56 // 4)
 
 

@@ -7,7 +7,7 @@ import pathlib
 import subprocess
 import sys
 
-import jax
+from conftest import compilation_cache_env
 
 import usp_jax
 
@@ -34,14 +34,12 @@ def test_detection_imports_no_training_evaluation_or_cli_code_and_none_of_their_
         "detector.detect(np.zeros((40, 48, 3), np.uint8), top_n=5)\n"
         "print(' '.join(sorted(sys.modules)))\n"
     )
-    # The fresh interpreter shares the tests' compilation cache (conftest.py).
-    cache = {"JAX_COMPILATION_CACHE_DIR": jax.config.jax_compilation_cache_dir or ""}
     loaded = subprocess.run(
         [sys.executable, "-c", script],
         capture_output=True,
         text=True,
         check=True,
-        env={**os.environ, **cache},
+        env={**os.environ, **compilation_cache_env()},  # the tests' cache: it compiles nothing new
     ).stdout.split()
     heavy = [m for m in loaded if m.split(".")[0] in HEAVY]
     ours = [

@@ -4,10 +4,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from conftest import SMALL_MODEL
 
 import usp_jax
 from usp_jax.core import correspondence, geometry, losses
-from usp_jax.core.model import ModelConfig, Predictions, UnsuperPoint, init_variables
+from usp_jax.core.model import Predictions, UnsuperPoint, init_variables
 
 
 def test_uniform_loss_is_eq10_on_sorted_values():
@@ -106,11 +107,6 @@ def test_usp_loss_matches_hand_computation():
     assert float(metrics["K"]) == k and float(metrics["mean_d"]) == pytest.approx(mean_d)
 
 
-SMALL = ModelConfig(
-    backbone_channels=(8, 8, 8, 8, 16, 16, 16, 16), head_channels=16, descriptor_dim=16
-)
-
-
 def predict(config, images):
     # Compiled whole: op-by-op dispatch of the network costs several times the compile.
     variables = init_variables(jax.random.PRNGKey(0), config)
@@ -123,7 +119,7 @@ pair_loss = jax.jit(losses.pair_loss, static_argnums=(3, 4))
 
 def test_identity_homography_gives_zero_position_loss():
     images = jax.random.uniform(jax.random.PRNGKey(0), (1, 32, 48, 3))
-    pred, _ = predict(SMALL, images)
+    pred, _ = predict(SMALL_MODEL, images)
     _, metrics = total_loss(pred, pred, jnp.eye(3)[None], 32, 48)
     assert float(metrics["usp/K"]) == 24  # every one of the 4 x 6 cells pairs with itself
     assert float(metrics["usp/mean_d"]) == pytest.approx(0.0, abs=1e-5)
@@ -132,11 +128,11 @@ def test_identity_homography_gives_zero_position_loss():
 
 def test_zero_correspondences_give_finite_loss_and_gradients():
     images = jax.random.uniform(jax.random.PRNGKey(1), (2, 32, 48, 3))
-    variables = init_variables(jax.random.PRNGKey(0), SMALL)
+    variables = init_variables(jax.random.PRNGKey(0), SMALL_MODEL)
     far_away = jnp.tile(jnp.array([[1.0, 0, 1000], [0, 1, 1000], [0, 0, 1]]), (2, 1, 1))
 
     def loss(params):
-        pred = UnsuperPoint(SMALL).apply({**variables, "params": params}, images)
+        pred = UnsuperPoint(SMALL_MODEL).apply({**variables, "params": params}, images)
         return losses.total_loss(pred, pred, far_away, 32, 48)
 
     (value, metrics), grads = jax.jit(jax.value_and_grad(loss, has_aux=True))(variables["params"])
@@ -147,14 +143,14 @@ def test_zero_correspondences_give_finite_loss_and_gradients():
 
 def test_total_loss_gradient_through_the_model_is_finite_and_nonzero():
     images = jax.random.uniform(jax.random.PRNGKey(2), (2, 32, 48, 3))
-    variables = init_variables(jax.random.PRNGKey(0), SMALL)
+    variables = init_variables(jax.random.PRNGKey(0), SMALL_MODEL)
     hs = jax.vmap(lambda k: geometry.sample_homography(k, 32, 48))(
         jax.random.split(jax.random.PRNGKey(3), 2)
     )
 
     def loss(params):
-        pred_a = UnsuperPoint(SMALL).apply({**variables, "params": params}, images)
-        pred_b = UnsuperPoint(SMALL).apply({**variables, "params": params}, images[:, ::-1])
+        pred_a = UnsuperPoint(SMALL_MODEL).apply({**variables, "params": params}, images)
+        pred_b = UnsuperPoint(SMALL_MODEL).apply({**variables, "params": params}, images[:, ::-1])
         return losses.total_loss(pred_a, pred_b, hs, 32, 48)[0]
 
     grads = jax.jit(jax.grad(loss))(variables["params"])
@@ -185,7 +181,7 @@ def test_no_term_swamps_the_others_at_initialisation(photo):
 
 def test_similarity_metrics_are_the_mean_over_positive_and_negative_pairs():
     images = jax.random.uniform(jax.random.PRNGKey(4), (1, 32, 48, 3))
-    pred, _ = predict(SMALL, images)
+    pred, _ = predict(SMALL_MODEL, images)
     pred = jax.tree.map(lambda x: x[0], pred)
     _, metrics = pair_loss(pred, pred, jnp.eye(3), 32, 48)
     corr = losses.branch_correspondences(pred, pred, jnp.eye(3), 32, 48)

@@ -1,8 +1,11 @@
+import dataclasses
+
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
 import scipy.ndimage
+from conftest import SMALL_MODEL
 
 from usp_jax.core.model import (
     CELL,
@@ -14,9 +17,8 @@ from usp_jax.core.model import (
     relative_to_pixels,
 )
 
-SMALL = ModelConfig(
-    backbone_channels=(8, 8, 8, 8, 16, 16, 16, 16), head_channels=16, descriptor_dim=8
-)
+# conftest's small network with 8-dim descriptors.
+SMALL = dataclasses.replace(SMALL_MODEL, descriptor_dim=8)
 
 
 def apply(config, images):

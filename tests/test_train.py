@@ -4,6 +4,7 @@ import pathlib
 import subprocess
 import sys
 
+import conftest
 import cv2
 import jax
 import jax.numpy as jnp
@@ -13,7 +14,7 @@ import pytest
 from usp_jax import config as config_lib
 from usp_jax.core import augment, geometry
 from usp_jax.core.model import ModelConfig
-from usp_jax.training import checkpoint, crops, data, train
+from usp_jax.training import checkpoint, crops, train
 from usp_jax.training import metrics as metrics_lib
 from usp_jax.training import step as step_lib
 
@@ -23,15 +24,8 @@ SMALL_MODEL = ModelConfig(
 
 
 def tiny_config(**changes) -> config_lib.Config:
-    base = config_lib.Config(
-        model=SMALL_MODEL,
-        data=data.DataConfig(source="sample", height=48, width=64, num_workers=2),
-        batch_size=2,
-        num_steps=4,
-        log_every=1,
-        checkpoint_every=2,
-    )
-    return config_lib.override(base, [f"{k}={v}" for k, v in changes.items()])
+    """conftest's tiny run with this module's larger network, on 48x64 crops for 4 steps."""
+    return conftest.tiny_config(SMALL_MODEL, (48, 64), 4, **changes)
 
 
 def params_of(state):
@@ -249,9 +243,8 @@ def run_on_devices(*counts):
     env = {
         **os.environ,
         "JAX_PLATFORMS": "cpu",
-        # The tests' compilation cache (conftest.py), so a rerun compiles nothing.
-        "JAX_COMPILATION_CACHE_DIR": jax.config.jax_compilation_cache_dir or "",
-        "JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS": "0.5",
+        # The tests' compilation cache, so a rerun compiles nothing.
+        **conftest.compilation_cache_env(),
     }
     processes = [
         subprocess.Popen(

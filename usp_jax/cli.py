@@ -78,34 +78,13 @@ def _load_detector(args, **options):
 
 def cmd_train(args) -> None:
     from usp_jax.training import config as config_lib
-    from usp_jax.training import train
-    from usp_jax.training.step import check_config
+    from usp_jax.training import distributed, train
 
-    cfg = config_lib.load(args.config)
-    overrides = list(args.overrides)
-    if args.data:
-        overrides.insert(0, f"data.source={args.data}")
-    if args.init:
-        overrides.insert(0, f"init_weights={args.init}")
-    cfg = config_lib.override(cfg, overrides)
-    # --steps N is num_steps=N; both at once must agree (neither silently beats the other).
-    if args.steps is not None:
-        given = [
-            o.split("=", 1)[1].strip()
-            for o in overrides
-            if o.split("=", 1)[0].strip() == "num_steps"
-        ]
-        if given and cfg.num_steps != args.steps:
-            raise ValueError(
-                f"--steps {args.steps} and num_steps={given[-1]} disagree; give one of them"
-            )
-        cfg = config_lib.override(cfg, [f"num_steps={args.steps}"])
+    cfg = config_lib.assemble(
+        args.config, data=args.data, init=args.init, overrides=args.overrides, steps=args.steps
+    )
     who = ""
     if _distributed(args):
-        from usp_jax.training import distributed
-
-        # Everything a process can check alone is checked before it waits for the others.
-        check_config(cfg)
         launch = distributed.Launch(
             args.coordinator,
             args.num_processes,
@@ -113,11 +92,7 @@ def cmd_train(args) -> None:
             args.init_timeout,
             args.heartbeat_timeout,
         )
-        distributed.check_launch(launch, cfg.batch_size)
-        distributed.initialize(launch, report=lambda line: _user_error("train", line))
-        import jax
-
-        who = f"process {jax.process_index()} of {jax.process_count()}: "
+        who = distributed.join(launch, cfg, report=lambda line: _user_error("train", line))
     print(f"{who}training {args.config} config on {cfg.data.source} into {args.workdir}")
     state = train.fit(
         cfg,

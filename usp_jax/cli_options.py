@@ -99,6 +99,16 @@ def _add_checkpoint(parser) -> None:
     _add_weights_name(group)
 
 
+def _add_nms_radius(parser, default: float, help: str) -> None:
+    """``--nms``: the detector's NMS radius in px, any finite value >= 0 (detect, match, export)."""
+    parser.add_argument("--nms", type=_radius, default=default, help=help)
+
+
+def _add_max_side(parser, help: str) -> None:
+    """``--max-side``: the longest side the network sees (``Detector``'s max_side; detect, match)."""
+    parser.add_argument("--max-side", type=_non_negative, default=MAX_SIDE, metavar="PX", help=help)
+
+
 class _Parser(argparse.ArgumentParser):
     """argparse with its errors in one line (the usage is one ``-h`` away), exit status 2."""
 
@@ -233,18 +243,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--top", type=_positive, default=500)
     # Spread points condition a homography or pose better: radius 4 cut the corner error of
     # the held-out viewpoint pairs by a third (experiments/RESULTS.md).
-    p.add_argument(
-        "--nms",
-        type=_radius,
-        default=0.0,
-        help="NMS radius in px, default 0 (try 4 for homography or pose estimation)",
-    )
-    p.add_argument(
-        "--max-side",
-        type=_non_negative,
-        default=MAX_SIDE,
-        metavar="PX",
-        help=f"detect on a copy at most this long (default {MAX_SIDE}; 0: native size);"
+    _add_nms_radius(p, 0.0, "NMS radius in px, default 0 (try 4 for homography or pose estimation)")
+    _add_max_side(
+        p,
+        f"detect on a copy at most this long (default {MAX_SIDE}; 0: native size);"
         " keypoints are in the original's pixels",
     )
     p.add_argument("--out", help="PNG with the keypoints drawn")
@@ -256,19 +258,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("image2")
     _add_checkpoint(p)
     p.add_argument("--top", type=_positive, default=1000)
-    p.add_argument(
-        "--nms",
-        type=_radius,
-        default=4.0,
-        help="NMS radius in px, default 4 (spread points condition a homography better)",
+    _add_nms_radius(
+        p, 4.0, "NMS radius in px, default 4 (spread points condition a homography better)"
     )
-    p.add_argument(
-        "--max-side",
-        type=_non_negative,
-        default=MAX_SIDE,
-        metavar="PX",
-        help=f"detect on copies at most this long (default {MAX_SIDE}; 0: native size)",
-    )
+    _add_max_side(p, f"detect on copies at most this long (default {MAX_SIDE}; 0: native size)")
     p.add_argument("--out", help="PNG of the inlier matches and image 1's border warped by H")
     p.add_argument("--json", help="homography, matches, inlier mask and keypoints as JSON")
     _add_upsample(p)
@@ -283,7 +276,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--artifact", help="write a serialised jax.export detector")
     p.add_argument("--res", type=_resolution, default=(240, 320), help="artifact input HxW")
     p.add_argument("--top", type=_positive, default=1000, help="artifact keeps this many points")
-    p.add_argument("--nms", type=_radius, default=0.0, help="artifact NMS radius in px")
+    _add_nms_radius(p, 0.0, "artifact NMS radius in px")
     _add_upsample(p)
 
     p = sub.add_parser("demo", help="the whole pipeline on bundled photos, offline, in minutes")

@@ -216,6 +216,34 @@ def _unit_square_to_quad(quad: jax.Array) -> jax.Array:
     )
 
 
+def _candidate_patches(
+    key_perspective: jax.Array, key_scale: jax.Array, half: jax.Array, config: HomographyConfig
+) -> tuple[jax.Array, jax.Array]:
+    """The num_candidates patches both samplers choose from, before rotation and translation:
+    corners [n, 4, 2] of the centred patch of side patch_ratio, each moved by a keystone of up to
+    ``perspective``, in pixels about the image centre (``half`` [2] = (W - 1, H - 1) / 2), and
+    scale factors [n, 1, 1] ~ U(1 - scaling, 1 + scaling)."""
+    n = config.num_candidates
+    unit = jnp.array(_UNIT_CORNERS, jnp.float32)
+    keystone = jax.random.uniform(
+        key_perspective, (n, 1, 2), minval=-config.perspective, maxval=config.perspective
+    )
+    corners = (
+        config.patch_ratio * unit + jnp.array(_KEYSTONE)[:, None] * keystone
+    ) * half  # [n, 4, 2]
+    scale = jax.random.uniform(
+        key_scale, (n, 1, 1), minval=1 - config.scaling, maxval=1 + config.scaling
+    )
+    return corners, scale
+
+
+def _showing(patch: jax.Array, height: int, width: int) -> jax.Array:
+    """float32 [3, 3] H mapping A's pixels to those of a [height, width] image B that shows the
+    quad ``patch`` [4, 2] of A (its corners in pixels, in _UNIT_CORNERS' order) as its whole."""
+    to_output = jnp.diag(jnp.array([width - 1, height - 1, 1], jnp.float32))
+    return compose_homographies(to_output, invert_homography(_unit_square_to_quad(patch)))
+
+
 def sample_homography(
     key: jax.Array, height: int, width: int, config: HomographyConfig = HomographyConfig()
 ) -> jax.Array:
@@ -249,18 +277,9 @@ def sample_homography(
     half = jnp.array([(width - 1) / 2, (height - 1) / 2], jnp.float32)
     unit = jnp.array(_UNIT_CORNERS, jnp.float32)
 
-    keystone = jax.random.uniform(
-        key_perspective, (n, 1, 2), minval=-config.perspective, maxval=config.perspective
-    )
-    corners = (
-        config.patch_ratio * unit + jnp.array(_KEYSTONE)[:, None] * keystone
-    ) * half  # [n, 4, 2]
-    scale = jax.random.uniform(
-        key_scale, (n, 1, 1), minval=1 - config.scaling, maxval=1 + config.scaling
-    )
+    corners, scale = _candidate_patches(key_perspective, key_scale, half, config)
     angle = jax.random.uniform(key_angle, (n,), minval=-config.max_angle, maxval=config.max_angle)
-    cos, sin = jnp.cos(angle), jnp.sin(angle)
-    rotation = jnp.stack([jnp.stack([cos, -sin], -1), jnp.stack([sin, cos], -1)], -2)  # [n, 2, 2]
+    rotation = _rotations(angle)  # [n, 2, 2]
     # Rotating in pixel units (not in [-1, 1] units) keeps the rotation free of shear on non-square images.
     corners = scale * jnp.einsum("nij,nkj->nki", rotation, corners)
     low, high = corners.min(axis=1), corners.max(axis=1)  # [n, 2] bounding boxes
@@ -272,9 +291,7 @@ def sample_homography(
     margin = config.translation * (half - (high - low) / 2)
     shift = jax.random.uniform(key_translation, (2,), minval=-margin, maxval=margin)
     patch = chosen + (half - (high + low) / 2 + shift)  # [4, 2] source pixels, image centre = half
-
-    to_output = jnp.diag(jnp.array([width - 1, height - 1, 1], jnp.float32))
-    return compose_homographies(to_output, invert_homography(_unit_square_to_quad(patch)))
+    return _showing(patch, height, width)
 
 
 def window_origin(height: int, width: int, window: tuple[int, int]) -> tuple[int, int]:
@@ -350,15 +367,7 @@ def sample_window_homography(
     window_low = jnp.array([-origin_x, -origin_y], jnp.float32)
     window_high = jnp.array([window[1] - 1 - origin_x, window[0] - 1 - origin_y], jnp.float32)
 
-    keystone = jax.random.uniform(
-        key_perspective, (n, 1, 2), minval=-config.perspective, maxval=config.perspective
-    )
-    corners = (
-        config.patch_ratio * unit + jnp.array(_KEYSTONE)[:, None] * keystone
-    ) * half  # [n, 4, 2]
-    scale = jax.random.uniform(
-        key_scale, (n, 1, 1), minval=1 - config.scaling, maxval=1 + config.scaling
-    )
+    corners, scale = _candidate_patches(key_perspective, key_scale, half, config)
     corners = scale * corners
     # One angle for all candidates: rejection then shapes only scale, keystone and translation, and
     # the angles follow their distribution exactly (per-candidate angles thin out the diagonals,
@@ -377,9 +386,7 @@ def sample_window_homography(
     turned_fits = jnp.all((turned >= window_low) & (turned <= window_high))
     fallback = jnp.where(turned_fits, turned, upright)
     patch = jnp.where(jnp.any(fits), patches[jnp.argmax(fits)], fallback)
-
-    to_output = jnp.diag(jnp.array([width - 1, height - 1, 1], jnp.float32))
-    return compose_homographies(to_output, invert_homography(_unit_square_to_quad(patch)))
+    return _showing(patch, height, width)
 
 
 def translation(x: float, y: float) -> jax.Array:

@@ -58,8 +58,8 @@ def usp_loss(
     scores_b: jax.Array,
     d: jax.Array,
     paired: jax.Array,
-    alpha_position: float = 1.0,
-    alpha_score: float = 2.0,
+    alpha_position: float = LossConfig.alpha_position,
+    alpha_score: float = LossConfig.alpha_score,
 ) -> tuple[jax.Array, dict]:
     """Unsupervised point loss, eqs. 5-9, summed over the K point-pairs.
 
@@ -105,9 +105,9 @@ def descriptor_loss(
     desc_b: jax.Array,
     c: jax.Array,
     mask: jax.Array,
-    lambda_d: float = 250.0,
-    margin_positive: float = 1.0,
-    margin_negative: float = 0.2,
+    lambda_d: float = LossConfig.lambda_d,
+    margin_positive: float = LossConfig.margin_positive,
+    margin_negative: float = LossConfig.margin_negative,
 ) -> jax.Array:
     """Hinge descriptor loss, eq. 13, summed over all MA x MB pairs.
 
@@ -141,7 +141,7 @@ def branch_correspondences(
     homography: jax.Array,
     height: int,
     width: int,
-    eps_correspond: float = 4.0,
+    eps_correspond: float = LossConfig.eps_correspond,
 ) -> correspondence.Correspondences:
     """Point-pairs of section 4 between unbatched branch predictions, T: [3, 3] from A to B."""
     return correspondence.find_correspondences(

@@ -27,39 +27,36 @@ from usp_jax.evaluation.statistics import (
     relative_changes,
 )
 
+# The metrics by key, in the order of the paper's columns, with their column titles.
+TITLES = {"rs": "RS", "le": "LE", "ha1": "HA e=1", "ha3": "HA e=3", "ha5": "HA e=5", "ms": "MS"}
+# The paper's columns with NMS 4: homography accuracy and matching score only.
+NMS_METRICS = ("ha1", "ha3", "ha5", "ms")
+
+
+def _row(*values: float, metrics: tuple[str, ...] = tuple(TITLES)) -> dict[str, float]:
+    """One row of a paper's table, its values in the order of ``metrics``, by metric key."""
+    return dict(zip(metrics, values, strict=True))
+
+
 # The paper's Table 2 (RS, LE) and Table 3 (HA at eps 1/3/5, MS; NMS 0 unless noted), HPatches.
 PAPER = {
     "240x320": {
-        "ORB": {"rs": 0.532, "le": 1.429, "ha1": 0.131, "ha3": 0.422, "ha5": 0.540, "ms": 0.218},
-        "AKAZE": {"rs": 0.599, "le": 1.007, "ha1": 0.378, "ha3": 0.724, "ha5": 0.791, "ms": 0.311},
-        "BRISK": {"rs": 0.566, "le": 1.077, "ha1": 0.414, "ha3": 0.767, "ha5": 0.826, "ms": 0.258},
-        "SIFT": {"rs": 0.451, "le": 0.855, "ha1": 0.622, "ha3": 0.845, "ha5": 0.878, "ms": 0.304},
-        "UnsuperPoint": {
-            "rs": 0.645,
-            "le": 0.832,
-            "ha1": 0.579,
-            "ha3": 0.855,
-            "ha5": 0.903,
-            "ms": 0.424,
-        },
+        "ORB": _row(0.532, 1.429, 0.131, 0.422, 0.540, 0.218),
+        "AKAZE": _row(0.599, 1.007, 0.378, 0.724, 0.791, 0.311),
+        "BRISK": _row(0.566, 1.077, 0.414, 0.767, 0.826, 0.258),
+        "SIFT": _row(0.451, 0.855, 0.622, 0.845, 0.878, 0.304),
+        "UnsuperPoint": _row(0.645, 0.832, 0.579, 0.855, 0.903, 0.424),
     },
     "480x640": {
-        "ORB": {"rs": 0.525, "le": 1.430, "ha1": 0.286, "ha3": 0.607, "ha5": 0.710, "ms": 0.204},
-        "AKAZE": {"rs": 0.572, "le": 1.126, "ha1": 0.369, "ha3": 0.743, "ha5": 0.812, "ms": 0.289},
-        "BRISK": {"rs": 0.505, "le": 1.207, "ha1": 0.300, "ha3": 0.653, "ha5": 0.746, "ms": 0.211},
-        "SIFT": {"rs": 0.421, "le": 1.011, "ha1": 0.602, "ha3": 0.833, "ha5": 0.876, "ms": 0.265},
-        "UnsuperPoint": {
-            "rs": 0.612,
-            "le": 0.991,
-            "ha1": 0.493,
-            "ha3": 0.843,
-            "ha5": 0.905,
-            "ms": 0.383,
-        },
+        "ORB": _row(0.525, 1.430, 0.286, 0.607, 0.710, 0.204),
+        "AKAZE": _row(0.572, 1.126, 0.369, 0.743, 0.812, 0.289),
+        "BRISK": _row(0.505, 1.207, 0.300, 0.653, 0.746, 0.211),
+        "SIFT": _row(0.421, 1.011, 0.602, 0.833, 0.876, 0.265),
+        "UnsuperPoint": _row(0.612, 0.991, 0.493, 0.843, 0.905, 0.383),
     },
     "240x320 NMS 4": {
-        "SIFT": {"ha1": 0.636, "ha3": 0.829, "ha5": 0.871, "ms": 0.248},
-        "UnsuperPoint": {"ha1": 0.557, "ha3": 0.871, "ha5": 0.921, "ms": 0.501},
+        "SIFT": _row(0.636, 0.829, 0.871, 0.248, metrics=NMS_METRICS),
+        "UnsuperPoint": _row(0.557, 0.871, 0.921, 0.501, metrics=NMS_METRICS),
     },
 }
 # The paper's speed table (frames per second at 240x320, 480x640).
@@ -81,7 +78,6 @@ FILES = {
 # detector when the file exists; the paper has no such row.
 UPSAMPLED = "UnsuperPoint, upsample 2"
 UPSAMPLED_FILES = {setting: name.replace(".json", "_up2.json") for setting, name in FILES.items()}
-TITLES = {"rs": "RS", "le": "LE", "ha1": "HA e=1", "ha3": "HA e=3", "ha5": "HA e=5", "ms": "MS"}
 
 
 # Table 1: the configurations C0-C4 (experiments/table1.py trains and evaluates them).
@@ -102,12 +98,12 @@ TRAINING_STATS = {
 }
 # The paper's Table 1 (HPatches, 240x320, 300 points): C0 and C4 as values, C1-C4 in percent of C0.
 PAPER_TABLE1 = {
-    "C0": {"rs": 0.633, "le": 0.898, "ha1": 0.519, "ha3": 0.812, "ha5": 0.871, "ms": 0.458},
-    "C1": {"rs": 1.1, "le": 1.0, "ha1": 0.0, "ha3": 1.9, "ha5": 2.0, "ms": 6.7},
-    "C2": {"rs": 1.9, "le": 4.8, "ha1": 15.3, "ha3": 5.5, "ha5": 4.0, "ms": 3.2},
-    "C3": {"rs": 0.2, "le": 4.4, "ha1": 8.3, "ha3": 0.6, "ha5": 2.6, "ms": 3.3},
-    "C4": {"rs": 1.9, "le": 7.4, "ha1": 7.3, "ha3": 7.2, "ha5": 5.7, "ms": 9.4},
-    "C4 values": {"rs": 0.612, "le": 0.991, "ha1": 0.521, "ha3": 0.831, "ha5": 0.902, "ms": 0.452},
+    "C0": _row(0.633, 0.898, 0.519, 0.812, 0.871, 0.458),
+    "C1": _row(1.1, 1.0, 0.0, 1.9, 2.0, 6.7),
+    "C2": _row(1.9, 4.8, 15.3, 5.5, 4.0, 3.2),
+    "C3": _row(0.2, 4.4, 8.3, 0.6, 2.6, 3.3),
+    "C4": _row(1.9, 7.4, 7.3, 7.2, 5.7, 9.4),
+    "C4 values": _row(0.612, 0.991, 0.521, 0.831, 0.902, 0.452),
 }
 
 
@@ -251,7 +247,7 @@ def main() -> None:
             json.loads(path.read_text())["summary"], folder / UPSAMPLED_FILES[setting]
         )
         out += [f"### {setting}, {'300' if setting.startswith('240') else '1000'} points", ""]
-        metrics = ("ha1", "ha3", "ha5", "ms") if "NMS" in setting else tuple(TITLES)
+        metrics = NMS_METRICS if "NMS" in setting else tuple(TITLES)
         out += table(ours, PAPER[setting], metrics) + [""]
     speed = folder / SPEED_FILE
     if speed.is_file():

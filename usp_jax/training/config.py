@@ -14,6 +14,7 @@ import json
 import os
 import pathlib
 import typing
+from collections.abc import Sequence
 from typing import Any
 
 from usp_jax.core import settings
@@ -197,6 +198,40 @@ def override(config: Config, assignments: list[str]) -> Config:
     return validate(config)
 
 
+def assemble(
+    spec: str,
+    data: str | None = None,
+    init: str | None = None,
+    overrides: Sequence[str] = (),
+    steps: int | None = None,
+) -> Config:
+    """The config of one ``usp-jax train`` command: :func:`load` ``spec``, then ``init_weights=init``
+    and ``data.source=data`` (when given), then ``overrides`` in order (a later key wins, so an
+    explicit ``data.source=`` beats ``data``), then ``num_steps=steps`` (when given).
+
+    ``steps`` is ``num_steps``: giving both, they must agree, so that neither silently beats the
+    other. Raises ValueError in one line for a bad override, or naming both values when ``steps``
+    and a ``num_steps=`` override disagree; FileNotFoundError for a ``spec`` that is no preset
+    and no file.
+    """
+    config = load(spec)
+    options = [f"init_weights={init}"] if init else []
+    options += [f"data.source={data}"] if data else []
+    config = override(config, [*options, *overrides])
+    if steps is not None:
+        explicit = [
+            o.split("=", 1)[1].strip()
+            for o in overrides
+            if o.split("=", 1)[0].strip() == "num_steps"
+        ]
+        if explicit and config.num_steps != steps:
+            raise ValueError(
+                f"--steps {steps} and num_steps={explicit[-1]} disagree; give one of them"
+            )
+        config = override(config, [f"num_steps={steps}"])
+    return config
+
+
 def _set(node: Any, path: list[str], text: str, key: str) -> Any:
     fields = {f.name: f for f in dataclasses.fields(node)}
     if path[0] not in fields:
@@ -244,6 +279,7 @@ def read(path: pathlib.Path) -> Config:
 __all__ = [
     "Config",
     "OptimConfig",
+    "assemble",
     "cpu",
     "differences",
     "load",

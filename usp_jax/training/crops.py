@@ -12,16 +12,22 @@ import numpy as np
 from usp_jax.core.geometry import window_origin
 
 
-def _scale_bounds(
-    rows: int, cols: int, height: int, width: int, scale_range: tuple[float, float]
-) -> tuple[float, tuple[float, float]]:
-    """(fit, (low, high)): the largest window of the output's aspect ratio inside a rows x cols
-    photo is fit * [height, width]; the window's fraction f of it is drawn from [low, high],
-    ``scale_range`` raised where needed so that the window is at least the output size."""
+def _draw_step(
+    rng: np.random.Generator,
+    image: np.ndarray,
+    height: int,
+    width: int,
+    scale_range: tuple[float, float],
+) -> float:
+    """Photo pixels per output pixel of a random crop of ``image`` [H, W, 3]: the largest window of
+    the output's aspect ratio inside the photo is fit * [height, width], and the crop's window is
+    a fraction f ~ U(low, high) of it, ``scale_range`` raised where needed so that the window is
+    at least the output size. Returns f * fit."""
+    rows, cols = image.shape[:2]
     fit = min(rows / height, cols / width)
     smallest = min(1 / fit, 1.0)  # The fraction at which the window equals the output size.
     low, high = (max(s, smallest) for s in scale_range)
-    return fit, (low, high)
+    return rng.uniform(low, high) * fit
 
 
 def random_crop(
@@ -41,10 +47,9 @@ def random_crop(
     largest window, upscaled.
     """
     rows, cols = image.shape[:2]
-    fit, (low, high) = _scale_bounds(rows, cols, height, width, scale_range)
-    fraction = rng.uniform(low, high)
-    window_rows = min(rows, round(fraction * fit * height))
-    window_cols = min(cols, round(fraction * fit * width))
+    step = _draw_step(rng, image, height, width, scale_range)
+    window_rows = min(rows, round(step * height))
+    window_cols = min(cols, round(step * width))
     top = rng.integers(rows - window_rows + 1)
     left = rng.integers(cols - window_cols + 1)
     window = image[top : top + window_rows, left : left + window_cols]
@@ -97,9 +102,8 @@ def random_context_crop(
     rows, cols = image.shape[:2]
     side = context_side(height, width)
     origin_x, origin_y = window_origin(height, width, (side, side))
-    fit, (low, high) = _scale_bounds(rows, cols, height, width, scale_range)
     # Photo pixels per output pixel, the same on both axes so that a rotation is a rotation.
-    step = rng.uniform(low, high) * fit
+    step = _draw_step(rng, image, height, width, scale_range)
     # Pixel centres: window pixel (u, v) shows photo point (left + step * u, top + step * v).
     top = _window_offset(rows, height, side, origin_y, step, rng)
     left = _window_offset(cols, width, side, origin_x, step, rng)

@@ -33,9 +33,12 @@ import sys
 import threading
 import time
 from collections.abc import Callable
-from typing import NoReturn
+from typing import TYPE_CHECKING, NoReturn
 
 import jax
+
+if TYPE_CHECKING:
+    from usp_jax.training.config import Config
 
 log = logging.getLogger(__name__)
 
@@ -167,6 +170,27 @@ def initialize(launch: Launch = Launch(), report: Callable[[str], None] | None =
         jax.local_device_count(),
         jax.device_count(),
     )
+
+
+def join(
+    launch: Launch, config: Config | None = None, report: Callable[[str], None] | None = None
+) -> str:
+    """Joins the run of a training ``config`` and returns ``"process P of N: "``, the prefix
+    that tells this process's lines from the others'.
+
+    Everything a process can check alone is checked before it waits for the others: the config
+    (``step.check_config``), the launch and the global batch's split (:func:`check_launch`); then
+    :func:`initialize` with ``report``. Raises ValueError, or ``DistributedError``, in one line.
+    """
+    if config is not None:
+        # Imported here: the network and the optimiser behind the check are training's, which
+        # joining alone (``initialize``) does not need.
+        from usp_jax.training.step import check_config
+
+        check_config(config)
+    check_launch(launch, None if config is None else config.batch_size)
+    initialize(launch, report)
+    return f"process {jax.process_index()} of {jax.process_count()}: "
 
 
 def preempted(step: int) -> bool:

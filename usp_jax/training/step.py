@@ -200,6 +200,37 @@ def _prediction_stats(pred: Predictions) -> dict:
     }
 
 
+def siamese_loss(
+    params: Any,
+    batch_stats: Any,
+    images_a: jax.Array,
+    images_b: jax.Array,
+    homographies: jax.Array,
+    config: config_lib.Config,
+) -> tuple[jax.Array, tuple[dict, Any]]:
+    """Eq. 4 of a batch of branch pairs, both branches through one network in training mode.
+
+    images_a, images_b: [B, H, W, 3] float in [0, 1]; homographies: [B, 3, 3] T mapping A's pixels
+    to B's (as ``make_branches`` returns them). Returns (loss, (metrics, new batch_stats)), the
+    metrics ``losses.total_loss``'s and the ``pred/`` statistics of both branches' predictions;
+    differentiable in ``params``.
+    """
+    batch, height, width, _ = images_a.shape
+    # One forward over both branches: the siamese weights are shared, and BatchNorm sees both
+    # views of every image.
+    pred, updates = UnsuperPoint(config.model).apply(
+        {"params": params, "batch_stats": batch_stats},
+        jnp.concatenate([images_a, images_b]),
+        train=True,
+        mutable=["batch_stats"],
+    )
+    pred_a = jax.tree.map(lambda x: x[:batch], pred)
+    pred_b = jax.tree.map(lambda x: x[batch:], pred)
+    loss, metrics = losses.total_loss(pred_a, pred_b, homographies, height, width, config.loss)
+    metrics.update({f"pred/{k}": v for k, v in _prediction_stats(pred).items()})
+    return loss, (metrics, updates["batch_stats"])
+
+
 def train_step(
     state: TrainState, images: jax.Array, config: config_lib.Config
 ) -> tuple[TrainState, dict]:
@@ -210,16 +241,18 @@ def train_step(
     statistics, ``finite``). A step whose loss, gradients or new parameters are not finite leaves
     the state unchanged and reports ``finite = 0`` so the loop can stop on the last good state.
     """
-    model = UnsuperPoint(config.model)
     optimizer = make_optimizer(config.optim)
-    batch, height, width, _ = images.shape
     images = images.astype(jnp.float32) / 255.0
     step_key = jax.random.fold_in(state.key, state.step)
     branch_stats = {}
     if config.data.context_window:
-        height, width = config.data.height, config.data.width
         images_a, images_b, homographies, valid_b = make_window_branches(
-            step_key, images, height, width, config.homography, config.photometric
+            step_key,
+            images,
+            config.data.height,
+            config.data.width,
+            config.homography,
+            config.photometric,
         )
         branch_stats["data/valid_b"] = jnp.mean(valid_b)
     else:
@@ -228,19 +261,7 @@ def train_step(
         )
 
     def loss_fn(params):
-        # One forward over both branches: the siamese weights are shared, and BatchNorm sees both
-        # views of every image.
-        pred, updates = model.apply(
-            {"params": params, "batch_stats": state.batch_stats},
-            jnp.concatenate([images_a, images_b]),
-            train=True,
-            mutable=["batch_stats"],
-        )
-        pred_a = jax.tree.map(lambda x: x[:batch], pred)
-        pred_b = jax.tree.map(lambda x: x[batch:], pred)
-        loss, metrics = losses.total_loss(pred_a, pred_b, homographies, height, width, config.loss)
-        metrics.update({f"pred/{k}": v for k, v in _prediction_stats(pred).items()})
-        return loss, (metrics, updates["batch_stats"])
+        return siamese_loss(params, state.batch_stats, images_a, images_b, homographies, config)
 
     (loss, (metrics, batch_stats)), grads = jax.value_and_grad(loss_fn, has_aux=True)(state.params)
     updates, opt_state = optimizer.update(grads, state.opt_state, state.params)

@@ -129,8 +129,7 @@ def fit(
         raise ValueError(f"num_steps must be a positive integer, got {num_steps!r}")
     if distributed and not jax.distributed.is_initialized():
         launch = distributed if isinstance(distributed, multihost.Launch) else multihost.Launch()
-        multihost.check_launch(launch, config.batch_size)
-        multihost.initialize(launch)
+        multihost.join(launch, config)
     multihost.check_batch(config.batch_size, jax.process_count())
     if config.batch_size % jax.device_count():
         raise ValueError(
