@@ -10,8 +10,9 @@ from usp_jax.evaluation.benchmark import (
     benchmark,
     format_benchmark,
     protocol_top_n,
+    shipped_networks,
 )
-from usp_jax.inference import Detector
+from usp_jax.inference import Detector, save_weights, weights
 
 
 @pytest.fixture(scope="module")
@@ -95,6 +96,28 @@ def test_named_detectors_are_timed_side_by_side_in_one_table(detector):
     assert result["models"]["UnsuperPoint fast"]["backbone"] == "fast"
     labels = [line.split("|")[0].strip() for line in format_benchmark(result).splitlines()]
     assert "UnsuperPoint paper, b1" in labels and "UnsuperPoint fast, b1" in labels
+
+
+def test_shipped_networks_times_each_network_once_whatever_weights_it_ships_with(
+    detector, tmp_path, monkeypatch
+):
+    small_fast = fast_config(
+        backbone_channels=(4, 8, 8, 16),
+        head_channels=8,
+        descriptor_head_channels=8,
+        descriptor_dim=8,
+    )
+    files = {"paper": (detector.variables, SMALL_MODEL)}
+    for seed, name in enumerate(("fast", "rotation")):  # one network, two weights
+        files[name] = (init_variables(jax.random.PRNGKey(seed), small_fast), small_fast)
+    registry = {}
+    for name, (variables, config) in files.items():
+        registry[name] = str(tmp_path / f"{name}.npz")
+        save_weights(registry[name], variables, config)
+    monkeypatch.setattr(weights, "PRETRAINED", registry)
+    networks = shipped_networks(top_n=7)
+    assert list(networks) == ["paper", "fast"]
+    assert networks["fast"].model_config == small_fast and networks["fast"].top_n == 7
 
 
 def test_protocol_top_n_follows_the_evaluation_settings():

@@ -3,6 +3,7 @@ Table 1's configurations and relative changes, bootstrap intervals, breakdowns b
 rotation. Everything is imported through the package; scripts are only run."""
 
 import ast
+import dataclasses
 import json
 import pathlib
 import subprocess
@@ -528,22 +529,38 @@ def test_the_rotation_config_is_the_fast_recipe_turned_over_the_full_circle():
     from usp_jax.core.model import fast_config
 
     stages = [
-        config_lib.load(str(EXPERIMENTS / spec)) for spec in ("rotation.py", "rotation.py:finetune")
+        config_lib.load(str(EXPERIMENTS / spec))
+        for spec in ("rotation.py", "rotation.py:finetune", "rotation.py:finetune2")
     ]
     for cfg in stages:
         assert cfg.model == fast_config() and cfg.data.context_window
         assert cfg.homography.rotation_range == (-180.0, 180.0)
         assert cfg.homography.rotation_distribution == "uniform"
-    assert [(c.data.height, c.data.width) for c in stages] == [(128, 160), (240, 320)]
+    sizes = [(c.data.height, c.data.width) for c in stages]
+    assert sizes == [(128, 160), (240, 320), (240, 320)]
+    # Stage 3 is stage 2 on a longer cosine with new draws, nothing else.
+    undone = {"seed": stages[1].seed, "num_steps": 1500, "optim": stages[1].optim}
+    assert dataclasses.replace(stages[2], **undone) == stages[1]
     doc = " ".join(docstring("rotation").replace("\\\n", " ").split())  # as a shell reads it
     for command in (
         "usp-jax train --config experiments/rotation.py --data data/corpus/train --workdir runs/rotation",
         "usp-jax export --checkpoint runs/rotation --save-weights runs/rotation-stage1.npz",
         "usp-jax train --config experiments/rotation.py:finetune --init runs/rotation-stage1.npz "
         "--data data/corpus/train --workdir runs/rotation-finetune",
-        "usp-jax export --checkpoint runs/rotation-finetune --save-weights usp_jax/weights/rotation.npz",
+        "usp-jax export --checkpoint runs/rotation-finetune2 --save-weights usp_jax/weights/rotation.npz",
+        "usp-jax train --config experiments/rotation.py:paper --data data/corpus/train "
+        "--workdir runs/rotation-paper",
     ):
         assert command in doc
+    # The paper network's version: its own stages 1 and 6, turned the same way.
+    for spec, upright, size in (
+        ("rotation.py:paper", "paper_network.py", (128, 160)),
+        ("rotation.py:paper_finetune", "paper_network.py:stage6", (240, 320)),
+    ):
+        cfg, base = (config_lib.load(str(EXPERIMENTS / s)) for s in (spec, upright))
+        assert cfg.model == base.model == config_lib.paper().model and cfg.data.context_window
+        assert (cfg.data.height, cfg.data.width) == size and cfg.loss == base.loss
+        assert cfg.homography == stages[0].homography and cfg.photometric.gamma == 0.5
     # Measured with 4,000 draws (training_rotations.py): half the pairs turn by 90 degrees or more.
     angles = analysis.training_rotations(
         stages[0].homography, 128, 160, draws=400, window=stages[0].data.example_shape[:2]

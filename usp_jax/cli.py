@@ -168,14 +168,12 @@ def cmd_make_pairs(args) -> None:
 
 def cmd_benchmark(args) -> None:
     from usp_jax.evaluation import benchmark
-    from usp_jax.inference.detector import Detector
-    from usp_jax.inference.weights import PRETRAINED
 
     _check_output_file(args.json, "--json")
     if args.weights or args.checkpoint:
         detector = _load_detector(args)
     else:  # every shipped network, side by side
-        detector = {name: Detector.pretrained(name, upsample=args.upsample) for name in PRETRAINED}
+        detector = benchmark.shipped_networks(upsample=args.upsample)
     result = benchmark.benchmark(
         detector,
         resolutions=tuple(args.res),

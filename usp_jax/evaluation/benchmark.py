@@ -25,6 +25,7 @@ import jax
 import numpy as np
 
 from usp_jax.evaluation.baselines import opencv_method
+from usp_jax.inference import weights
 from usp_jax.inference.detector import Detector
 
 DEFAULT_RESOLUTIONS = ((240, 320), (480, 640))
@@ -35,6 +36,18 @@ UNSUPERPOINT = "UnsuperPoint"
 def protocol_top_n(height: int, width: int) -> int:
     """The evaluation protocol's point count: 300 up to 240x320 pixels, 1000 above."""
     return 300 if height * width <= 240 * 320 else 1000
+
+
+def shipped_networks(**detector_options) -> dict[str, Detector]:
+    """One detector per distinct shipped network, by the name of its first weights in
+    ``weights.PRETRAINED``: weights of one network run at one speed, so timing each named file
+    (``fast`` and ``rotation`` share a network) would only repeat a row."""
+    networks: dict[str, Detector] = {}
+    for name in weights.PRETRAINED:
+        detector = Detector.pretrained(name, **detector_options)
+        if all(d.model_config != detector.model_config for d in networks.values()):
+            networks[name] = detector
+    return networks
 
 
 def benchmark_photos() -> list[np.ndarray]:

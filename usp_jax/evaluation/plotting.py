@@ -9,6 +9,7 @@ no global backend and works on machines without a display. Every function writes
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -16,6 +17,7 @@ import numpy as np
 from matplotlib.collections import LineCollection
 from matplotlib.figure import Figure
 from matplotlib.lines import Line2D
+from matplotlib.ticker import LogFormatter
 
 from usp_jax.evaluation.metrics import corner_error, image_corners, project_points, shared_view_mask
 
@@ -309,18 +311,34 @@ def plot_speed_quality(points: Sequence[dict], path: str | Path) -> Path:
     for column, size in enumerate(sizes):
         for row, (metric, name) in enumerate((("ha3", "HA@3"), ("ms", "MS"))):
             axes = grid[row, column]
-            for point in (p for p in points if p["size"] == size):
+            here = [p for p in points if p["size"] == size]
+            span = np.ptp([p[metric] for p in here]) or 1.0
+            placed: list[dict] = []  # Labelled right of their point, where nothing crowds them.
+            for point in sorted(here, key=lambda p: p[metric]):
                 colour = BLUE if point["ours"] else "0.45"
                 axes.scatter(point["images_per_s"], point[metric], color=colour, zorder=3)
+                # One network's weights share a speed: a label right of a point that another
+                # label already sits beside (within 4% of the range) goes to the left instead.
+                crowded = any(
+                    abs(math.log(q["images_per_s"] / point["images_per_s"])) < 0.1
+                    and abs(q[metric] - point[metric]) < 0.04 * span
+                    for q in placed
+                )
+                if not crowded:
+                    placed.append(point)
                 axes.annotate(
                     point["label"],
                     (point["images_per_s"], point[metric]),
                     textcoords="offset points",
-                    xytext=(5, 4),
+                    xytext=(-5, 4) if crowded else (5, 4),
+                    ha="right" if crowded else "left",
                     fontsize="small",
                     color=colour,
                 )
             axes.set_xscale("log")
+            # Plain numbers on the log axis (its default writes 3x10^0 on short decades).
+            axes.xaxis.set_major_formatter(LogFormatter(labelOnlyBase=False))
+            axes.xaxis.set_minor_formatter(LogFormatter(labelOnlyBase=False))
             axes.set_xlabel("images/s (log)")
             axes.set_ylabel(name)
             axes.set_title(f"{name} against speed, {size}")

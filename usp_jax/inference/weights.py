@@ -29,7 +29,10 @@ WEIGHTS_DIR = importlib.resources.files("usp_jax") / "weights"
 #: Shipped weights by name -> their file in WEIGHTS_DIR. "paper": the paper's VGG network;
 #: "fast": ``core.model.fast_config()`` trained by experiments/fast.py, 4.3-5.3x the images/s but below
 #: the paper network on the held-out pairs (HA@3 0.66 vs 0.91, MS 0.57 vs 0.65; RESULTS).
-PRETRAINED = {"paper": "paper.npz", "fast": "fast.npz"}
+#: "rotation": the fast network trained on full-circle rotations by experiments/rotation.py,
+#: for imagery that turns in-plane (its matching score no longer falls with the angle); on
+#: upright pairs the upright weights are better.
+PRETRAINED = {"paper": "paper.npz", "fast": "fast.npz", "rotation": "rotation.npz"}
 #: What ``Detector.pretrained()`` loads: the best of the named weights on the held-out pairs.
 DEFAULT_PRETRAINED = "paper"
 
