@@ -10,7 +10,7 @@ import jax
 import pytest
 
 from usp_jax import config as config_lib
-from usp_jax.core.model import ModelConfig
+from usp_jax.core.model import ModelConfig, fast_config
 from usp_jax.training.data import DataConfig
 
 jax.config.update(
@@ -22,6 +22,10 @@ jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)
 #: A network small enough to compile and run in seconds on a CPU: 16-dim descriptors.
 SMALL_MODEL = ModelConfig(
     backbone_channels=(8, 8, 8, 8, 16, 16, 16, 16), head_channels=16, descriptor_dim=16
+)
+#: The fast backbone at test size (``core.model.fast_config``), 8-d descriptors.
+SMALL_FAST = fast_config(
+    backbone_channels=(4, 8, 8, 16), head_channels=8, descriptor_head_channels=8, descriptor_dim=8
 )
 
 #: ``KEY=VALUE`` overrides of a tiny ``usp-jax train`` run: SMALL_MODEL on 32x48 crops, batch 2,

@@ -2,9 +2,9 @@ import json
 
 import jax
 import pytest
-from conftest import SMALL_MODEL
+from conftest import SMALL_FAST, SMALL_MODEL
 
-from usp_jax.core.model import fast_config, init_variables
+from usp_jax.core.model import init_variables
 from usp_jax.evaluation.benchmark import (
     OPENCV_DETECTORS,
     benchmark,
@@ -77,13 +77,7 @@ def test_an_upsampled_detector_is_recorded_and_named_in_the_table(detector):
 
 
 def test_named_detectors_are_timed_side_by_side_in_one_table(detector):
-    fast_config_ = fast_config(
-        backbone_channels=(4, 8, 8, 16),
-        head_channels=8,
-        descriptor_head_channels=8,
-        descriptor_dim=8,
-    )
-    fast = Detector(init_variables(jax.random.PRNGKey(0), fast_config_), fast_config_)
+    fast = Detector(init_variables(jax.random.PRNGKey(0), SMALL_FAST), SMALL_FAST)
     result = benchmark(
         {"paper": detector, "fast": fast},
         resolutions=((32, 48),),
@@ -101,15 +95,9 @@ def test_named_detectors_are_timed_side_by_side_in_one_table(detector):
 def test_shipped_networks_times_each_network_once_whatever_weights_it_ships_with(
     detector, tmp_path, monkeypatch
 ):
-    small_fast = fast_config(
-        backbone_channels=(4, 8, 8, 16),
-        head_channels=8,
-        descriptor_head_channels=8,
-        descriptor_dim=8,
-    )
     files = {"paper": (detector.variables, SMALL_MODEL)}
     for seed, name in enumerate(("fast", "rotation")):  # one network, two weights
-        files[name] = (init_variables(jax.random.PRNGKey(seed), small_fast), small_fast)
+        files[name] = (init_variables(jax.random.PRNGKey(seed), SMALL_FAST), SMALL_FAST)
     registry = {}
     for name, (variables, config) in files.items():
         registry[name] = str(tmp_path / f"{name}.npz")
@@ -117,7 +105,7 @@ def test_shipped_networks_times_each_network_once_whatever_weights_it_ships_with
     monkeypatch.setattr(weights, "PRETRAINED", registry)
     networks = shipped_networks(top_n=7)
     assert list(networks) == ["paper", "fast"]
-    assert networks["fast"].model_config == small_fast and networks["fast"].top_n == 7
+    assert networks["fast"].model_config == SMALL_FAST and networks["fast"].top_n == 7
 
 
 def test_protocol_top_n_follows_the_evaluation_settings():

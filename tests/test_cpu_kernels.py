@@ -4,10 +4,10 @@ import flax.linen as nn
 import jax
 import jax.numpy as jnp
 import numpy as np
-from conftest import SMALL_MODEL
+from conftest import SMALL_FAST, SMALL_MODEL
 
 from usp_jax.core.cpu_kernels import conv_few_outputs, max_pool_2x2
-from usp_jax.core.model import UnsuperPoint, fast_config, init_variables
+from usp_jax.core.model import UnsuperPoint, init_variables
 
 
 def test_max_pool_matches_flax_values_and_gradients_including_ties():
@@ -46,12 +46,7 @@ def test_the_network_gives_the_same_outputs_and_gradients_on_the_plain_and_the_c
     images = jnp.asarray(rng.uniform(size=(2, 32, 48, 3)).astype(np.float32))
     for config in (
         SMALL_MODEL,
-        fast_config(
-            backbone_channels=(4, 8, 8, 16),
-            head_channels=8,
-            descriptor_head_channels=8,
-            descriptor_dim=8,
-        ),
+        SMALL_FAST,
     ):
         variables = init_variables(jax.random.PRNGKey(0), config)
 

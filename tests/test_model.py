@@ -5,7 +5,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 import scipy.ndimage
-from conftest import SMALL_MODEL
+from conftest import SMALL_FAST, SMALL_MODEL
 
 from usp_jax.core.model import (
     CELL,
@@ -122,11 +122,6 @@ def test_bfloat16_compute_keeps_float32_outputs():
     images = jax.random.uniform(jax.random.PRNGKey(4), (1, 16, 16, 3))
     pred = apply(ModelConfig(**{**SMALL.__dict__, "dtype": "bfloat16"}), images)
     assert pred.scores.dtype == jnp.float32 and pred.descriptors.dtype == jnp.float32
-
-
-SMALL_FAST = fast_config(
-    backbone_channels=(4, 8, 8, 16), head_channels=8, descriptor_head_channels=8, descriptor_dim=8
-)
 
 
 @pytest.mark.parametrize("height, width", [(32, 48), (40, 56)])  # even and odd cell grids
