@@ -321,6 +321,8 @@ def main(argv: list[str] | None = None) -> int:
     line: the native threads of a checkpoint save that failed (a full disk) may still call back
     into a closed asyncio loop while the interpreter shuts down, each printing a traceback.
     """
+    if argv is None:
+        sys.unraisablehook = _without_closed_loop_callbacks(sys.unraisablehook)
     code = _main(argv)
     if argv is None and code == 2:
         sys.stdout.flush()
@@ -329,6 +331,23 @@ def main(argv: list[str] | None = None) -> int:
         os.dup2(quiet, 2)  # the error line is out; native threads' late prints are not
         os._exit(code)
     return code
+
+
+def _without_closed_loop_callbacks(hook):
+    """``hook`` (a ``sys.unraisablehook``) minus TensorStore's callbacks into a closed loop.
+
+    A checkpoint save that fails (a full disk) ends orbax's asyncio loop while TensorStore
+    still finishes its other writes; each finished write then tries to wake the closed loop
+    and prints a traceback from a native thread, hundreds of them, racing train's one error
+    line. They say nothing the error line does not.
+    """
+
+    def filtered(unraisable) -> None:
+        error = unraisable.exc_value
+        if not (isinstance(error, RuntimeError) and str(error) == "Event loop is closed"):
+            hook(unraisable)
+
+    return filtered
 
 
 def _main(argv: list[str] | None) -> int:
@@ -342,8 +361,10 @@ def _main(argv: list[str] | None) -> int:
     logging.getLogger("usp_jax").setLevel(logging.INFO if args.verbose else logging.WARNING)
     # Orbax logs a failed background save (a full disk) as ERRORs with tracebacks from each of
     # its threads; train reports it again as one line naming the last complete checkpoint.
+    # Its asyncio tasks, abandoned by that failed save, log their errors when collected.
     if not args.verbose:
         logging.getLogger("absl").setLevel(logging.CRITICAL)
+        logging.getLogger("asyncio").setLevel(logging.CRITICAL)
     from usp_jax.training import distributed
 
     try:
