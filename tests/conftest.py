@@ -83,6 +83,11 @@ def compilation_cache_env() -> dict[str, str]:
     }
 
 
+def child_env() -> dict[str, str]:
+    """This process's environment plus the tests' compilation cache, for a child ``usp-jax``."""
+    return {**os.environ, **compilation_cache_env()}
+
+
 @pytest.fixture(scope="session")
 def photo():
     """A real photo (uint8 [512, 512, 3]) that ships inside scikit-image."""

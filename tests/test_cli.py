@@ -4,7 +4,7 @@ import cv2
 import jax
 import numpy as np
 import pytest
-from conftest import TINY_RUN, USP_JAX, train_args
+from conftest import TINY_RUN, USP_JAX, child_env, train_args
 
 from usp_jax import evaluation
 from usp_jax.cli import main, parse_args
@@ -388,6 +388,7 @@ def test_verbose_flag_shows_usp_jax_info_lines_although_imports_install_a_root_h
             capture_output=True,
             text=True,
             timeout=600,
+            env=child_env(),
         )
 
     quiet = train()

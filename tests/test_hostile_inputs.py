@@ -13,7 +13,7 @@ import types
 import jax
 import numpy as np
 import pytest
-from conftest import SMALL_MODEL, TINY_RUN, USP_JAX, tiny_config, train_args
+from conftest import SMALL_MODEL, TINY_RUN, USP_JAX, child_env, tiny_config, train_args
 
 from usp_jax import config as config_lib
 from usp_jax import inference
@@ -470,6 +470,7 @@ def test_a_full_disk_is_one_line_from_the_command(tmp_path):
         capture_output=True,
         text=True,
         timeout=300,
+        env=child_env(),
     )
     err = [line for line in result.stderr.splitlines() if "libpng" not in line]
     assert result.returncode == 2 and len(err) == 1, result.stderr
@@ -494,6 +495,7 @@ def test_a_really_full_tmpfs_is_one_line(tmp_path):
             capture_output=True,
             text=True,
             timeout=300,
+            env=child_env(),
         )
     finally:
         subprocess.run(["umount", "-l", str(mount)], capture_output=True)

@@ -2,12 +2,11 @@
 (docs/modules.md), and no module outgrows one concept."""
 
 import ast
-import os
 import pathlib
 import subprocess
 import sys
 
-from conftest import compilation_cache_env
+from conftest import child_env
 
 import usp_jax
 
@@ -39,7 +38,7 @@ def test_detection_imports_no_training_evaluation_or_cli_code_and_none_of_their_
         capture_output=True,
         text=True,
         check=True,
-        env={**os.environ, **compilation_cache_env()},  # the tests' cache: it compiles nothing new
+        env=child_env(),  # the tests' cache: it compiles nothing new
     ).stdout.split()
     heavy = [m for m in loaded if m.split(".")[0] in HEAVY]
     ours = [
