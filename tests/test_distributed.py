@@ -138,7 +138,7 @@ def test_a_failing_process_ends_every_process_of_the_run_with_its_error(tmp_path
     # Process 0, which hosts the coordination service, fails; process 1 is then waiting for it.
     outcomes = [finish(p) for p in start_processes(tmp_path / "run", 4, data=[missing, "sample"])]
     (code0, _, err0), (code1, _, err1) = outcomes
-    assert (code0, code1) == (2, 2)
+    assert (code0, code1) == (2, 2), (err0, err1)
     assert error_lines(err0) == [f"usp-jax train: error: image folder {missing} does not exist"]
     assert error_lines(err1) == [
         f"usp-jax train: error: process 0 of 2 failed: image folder {missing} does not exist"

@@ -52,7 +52,7 @@ _JAX_GRACE_S = 30
 _POLL_MS = 1000
 # How long process 0, which hosts the coordination service, waits for the others to read a
 # failure before it exits and takes the service with it.
-_LEAVE_WAIT_S = 10
+_LEAVE_WAIT_S = 30
 
 
 class DistributedError(RuntimeError):
@@ -158,6 +158,10 @@ def initialize(launch: Launch = Launch(), report: Callable[[str], None] | None =
     from jax._src import distributed as jax_distributed  # the runtime's client: no public handle
 
     _STATE.client = jax_distributed.global_state.client
+    # What the watcher and the exit path need, read without the backend: a thread that asks
+    # jax.process_index() while the main thread is still setting the backend up waits for it.
+    _STATE.process = jax_distributed.global_state.process_id
+    _STATE.count = jax_distributed.global_state.num_processes
     _STATE.report = report
     _STATE.watcher = threading.Thread(target=_watch, name="usp-jax failure watcher", daemon=True)
     _STATE.watcher.start()
@@ -249,6 +253,8 @@ def first_line(error: BaseException) -> str:
 @dataclasses.dataclass
 class _State:
     client: object = None
+    process: int = 0
+    count: int = 1
     report: Callable[[str], None] | None = None
     watcher: threading.Thread | None = None
     stopping: threading.Event = dataclasses.field(default_factory=threading.Event)
@@ -331,7 +337,7 @@ def _watch() -> None:
             _failed_elsewhere(f"lost the coordination service in process 0: {first_line(error)}")
             return
         failure = json.loads(value)
-        if failure["process"] != jax.process_index():
+        if failure["process"] != _STATE.process:
             _failed_elsewhere(_describe(failure))
         return  # this process's own failure: its main thread is ending it
 
@@ -344,7 +350,7 @@ def _failed_elsewhere(line: str) -> None:
 
 
 def _describe(failure: dict) -> str:
-    return f"process {failure['process']} of {jax.process_count()} failed: {failure['message']}"
+    return f"process {failure['process']} of {_STATE.count} failed: {failure['message']}"
 
 
 def _publish_failure(message: str) -> str | None:
@@ -352,7 +358,7 @@ def _publish_failure(message: str) -> str | None:
     process instead when there is one (the store keeps the first record of a key)."""
     if _STATE.client is None:
         return None
-    record = json.dumps({"process": jax.process_index(), "message": message})
+    record = json.dumps({"process": _STATE.process, "message": message})
     try:
         _STATE.client.key_value_set(FAILURE_KEY, record)
         return None
@@ -362,7 +368,7 @@ def _publish_failure(message: str) -> str | None:
         failure = json.loads(_STATE.client.key_value_try_get(FAILURE_KEY))
     except Exception:
         return None
-    return None if failure["process"] == jax.process_index() else _describe(failure)
+    return None if failure["process"] == _STATE.process else _describe(failure)
 
 
 def _leave(code: int) -> NoReturn:
@@ -370,7 +376,7 @@ def _leave(code: int) -> NoReturn:
     coordination service through which they read the failure."""
     client = _STATE.client
     if client is not None:
-        me, count = jax.process_index(), jax.process_count()
+        me, count = _STATE.process, _STATE.count
         try:
             client.key_value_set(f"{LEFT_KEY}{me}", "1")
             if me == 0:
