@@ -1,7 +1,6 @@
 """Multi-process training on JAX's distributed runtime, run here: two `usp-jax train` processes on
 this machine, one CPU device each, joined through gloo, against one process with two devices."""
 
-import os
 import re
 import signal
 import socket
@@ -11,7 +10,7 @@ import time
 import jax
 import numpy as np
 import pytest
-from conftest import TINY, USP_JAX, compilation_cache_env, train_args
+from conftest import TINY, USP_JAX, child_env, train_args
 
 from usp_jax import config as config_lib
 from usp_jax.cli import main
@@ -36,16 +35,15 @@ def train_argv(workdir, steps, *extra) -> list[str]:
 
 def start(argv, devices=1) -> subprocess.Popen:
     """``argv`` in a process with ``devices`` CPU devices."""
+    # child_env: the tests' compilation cache, so process 0 of the resumed run, and every run of
+    # a rerun, compile nothing. (JAX lets only process 0 write it.)
     env = {
-        **os.environ,
+        **child_env(),
         "JAX_PLATFORMS": "cpu",
         # LLVM's optimisations take half of the compile time of a train step, which dominates
         # these short runs; every run here is compiled alike, so they still compute the same.
         "XLA_FLAGS": f"--xla_force_host_platform_device_count={devices}"
         " --xla_backend_optimization_level=0",
-        # The tests' compilation cache: process 0 of the resumed run, and every run of a rerun,
-        # compile nothing. (JAX lets only process 0 write it.)
-        **compilation_cache_env(),
     }
     return subprocess.Popen(
         argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env

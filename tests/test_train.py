@@ -1,5 +1,4 @@
 import json
-import os
 import pathlib
 import subprocess
 import sys
@@ -240,12 +239,8 @@ print(json.dumps({"devices": jax.device_count(), "losses": losses, "grad_norms":
 
 def run_on_devices(*counts):
     """DEVICE_SCRIPT's output for each device count, the processes run side by side."""
-    env = {
-        **os.environ,
-        "JAX_PLATFORMS": "cpu",
-        # The tests' compilation cache, so a rerun compiles nothing.
-        **conftest.compilation_cache_env(),
-    }
+    # With the tests' compilation cache, so a rerun compiles nothing.
+    env = {**conftest.child_env(), "JAX_PLATFORMS": "cpu"}
     processes = [
         subprocess.Popen(
             [sys.executable, "-c", DEVICE_SCRIPT, str(n), str(pathlib.Path(__file__).parent)],
