@@ -85,6 +85,24 @@ def test_make_pairs_rotation_flags_turn_the_viewpoint_pairs(photo, tmp_path):
     assert sorted(pair_rotations(0, 3, rotation_angles=[180, 90])) == [90, 180]
 
 
+def test_match_across_any_rotation_turns_image_2_back_and_recovers_the_homography(
+    photo, tmp_path, capsys
+):
+    small = cv2.cvtColor(cv2.resize(photo, (256, 256)), cv2.COLOR_RGB2BGR)
+    truth = np.vstack([cv2.getRotationMatrix2D((127.5, 127.5), 120, 0.9), [0, 0, 1]])
+    first, second, out = tmp_path / "a.png", tmp_path / "b.png", tmp_path / "m.json"
+    cv2.imwrite(str(first), small)
+    cv2.imwrite(str(second), cv2.warpPerspective(small, truth, (256, 256)))
+    argv = ["match", str(first), str(second), "--top", "500", "--json", str(out)]
+    assert main([*argv, "--any-rotation"]) == 0
+    assert "image 2 turned back by " in capsys.readouterr().out
+    result = json.loads(out.read_text())
+    assert result["turned_back_degrees"] == pytest.approx(-120, abs=3)
+    assert evaluation.corner_error(truth, np.array(result["homography"]), (256, 256)) < 3
+    assert main(argv) == 0  # without the flag nothing is turned
+    assert json.loads(out.read_text())["turned_back_degrees"] is None
+
+
 @pytest.mark.parametrize(
     "argv, message",
     [
@@ -156,6 +174,8 @@ def test_train_resumes_and_the_checkpoint_detects_and_evaluates(
     assert list((tmp_path / "plots").glob("*_matches.png"))
     assert main([*evaluate, "--baselines", "", "--upsample", "2"]) == 0
     assert "model on 2x enlarged images" in capsys.readouterr().out
+    assert main([*evaluate, "--baselines", "", "--any-rotation"]) == 0
+    assert "model matching across any rotation" in capsys.readouterr().out
 
 
 def test_match_recovers_a_known_homography_between_a_photo_and_its_warp(photo, tmp_path, capsys):

@@ -393,6 +393,30 @@ def test_evaluate_scores_a_ground_truth_detector_perfectly(tiny_hpatches, nms):
         assert row.rs == 1.0 and row.le < 1e-3 and row.ha1 == 1.0 and row.ms == 1.0, row
 
 
+def test_a_pair_method_is_given_both_images_and_its_output_is_checked(tiny_hpatches):
+    # Each pair's answer comes from detect_pair, which sees both images; detect is never called.
+    oracle = gt_method(tiny_hpatches, 240, 320)
+    seen = []
+
+    def detect_pair(image1, image2):
+        seen.append((image1.shape, image2.shape))
+        return oracle.detect(image1), oracle.detect(image2)
+
+    def no_detect(image):
+        raise AssertionError("detect called for a pair method")
+
+    paired = ev.Method("paired", no_detect, detect_pair=detect_pair)
+    results = ev.evaluate([paired], tiny_hpatches, nms=4, progress=False)
+    assert seen == [((240, 320, 3), (240, 320, 3))] * len(results.rows)
+    for row in results.rows:
+        assert row.rs == 1.0 and row.ha1 == 1.0 and row.ms == 1.0, row
+    broken = ev.Method(
+        "broken", no_detect, detect_pair=lambda a, b: (oracle.detect(a), ev.Features([], [], []))
+    )
+    with pytest.raises(ValueError, match="method broken"):
+        ev.evaluate([broken], tiny_hpatches, progress=False)
+
+
 def test_evaluate_rejects_malformed_detector_output(tiny_hpatches):
     broken = ev.Method(
         "broken", lambda image: ev.Features(np.zeros((3, 2)), np.zeros(2), np.zeros((3, 4)))

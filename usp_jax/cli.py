@@ -76,6 +76,13 @@ def _load_detector(args, **options):
     return Detector.load(getattr(args, "checkpoint", None) or None, **options)
 
 
+def _guide(args, **options):
+    """The rotation-invariant guide of ``--any-rotation`` (None without it)."""
+    from usp_jax.inference.detector import Detector
+
+    return Detector.pretrained("rotation", **options) if args.any_rotation else None
+
+
 def cmd_train(args) -> None:
     from usp_jax.training import config as config_lib
     from usp_jax.training import distributed, train
@@ -126,7 +133,8 @@ def cmd_evaluate(args) -> None:
     detector = None if args.baselines_only else _load_detector(args)
     height, width = args.res
     baselines = [name.strip() for name in args.baselines.split(",") if name.strip()]
-    methods = protocol.methods(detector, baselines, args.top)
+    guide = _guide(args) if detector is not None else None
+    methods = protocol.methods(detector, baselines, args.top, guide)
     results = protocol.evaluate(
         methods,
         args.hpatches,
@@ -137,6 +145,7 @@ def cmd_evaluate(args) -> None:
         progress=not args.no_progress,
     )
     enlarged = f", model on {args.upsample}x enlarged images" if args.upsample > 1 else ""
+    enlarged += ", model matching across any rotation" if guide is not None else ""
     print(f"{args.hpatches} at {height}x{width}, top {args.top} points, NMS {args.nms}{enlarged}")
     print(protocol.format_table(results))
     if args.json:
@@ -216,13 +225,20 @@ def cmd_detect(args) -> None:
 def cmd_match(args) -> None:
     from usp_jax.evaluation import plotting
     from usp_jax.inference import matching as matching_lib
+    from usp_jax.inference import turning
     from usp_jax.inference.images import read_image
 
     _check_output_file(args.out, "--out")
     _check_output_file(args.json, "--json")
     detector = _load_detector(args, nms_radius=args.nms, max_side=args.max_side)
+    guide = _guide(args, max_side=args.max_side)
     image1, image2 = read_image(args.image1), read_image(args.image2)
-    features1, features2 = (detector.detect(image, top_n=args.top) for image in (image1, image2))
+    angle = None
+    if guide is None:
+        features1, features2 = (detector.detect(image, args.top) for image in (image1, image2))
+    else:
+        features1, features2, angle = turning.detect_pair(detector, guide, image1, image2, args.top)
+        print(f"image 2 turned back by {angle:.1f} degrees before detection")
     matching = matching_lib.match_and_estimate(features1, features2)
     print(
         f"{len(features1.keypoints)} and {len(features2.keypoints)} keypoints,"
@@ -258,6 +274,7 @@ def cmd_match(args) -> None:
                     "inliers": matching.inliers.tolist(),
                     "keypoints1": features1.keypoints.tolist(),
                     "keypoints2": features2.keypoints.tolist(),
+                    "turned_back_degrees": angle,
                 }
             )
         )

@@ -79,6 +79,15 @@ def _add_upsample(parser) -> None:
     )
 
 
+def _add_any_rotation(parser) -> None:
+    parser.add_argument(
+        "--any-rotation",
+        action="store_true",
+        help="match across any in-plane rotation: the shipped rotation-invariant weights"
+        " estimate how far image 2 is turned, and the model matches it turned back",
+    )
+
+
 def _add_weights_name(parser) -> None:
     parser.add_argument(
         "--weights",
@@ -201,6 +210,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--plots", help="folder for keypoint and match PNGs")
     p.add_argument("--no-progress", action="store_true")
     _add_upsample(p)
+    _add_any_rotation(p)
 
     p = sub.add_parser("make-pairs", help="HPatches-layout pairs from any folder of photos")
     p.add_argument("--images", required=True)
@@ -265,6 +275,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", help="PNG of the inlier matches and image 1's border warped by H")
     p.add_argument("--json", help="homography, matches, inlier mask and keypoints as JSON")
     _add_upsample(p)
+    _add_any_rotation(p)
 
     p = sub.add_parser("export", help="float16 weights file or a jax.export inference artifact")
     _add_checkpoint(p)

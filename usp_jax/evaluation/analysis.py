@@ -17,6 +17,7 @@ from usp_jax.core import geometry
 from usp_jax.evaluation import metrics, protocol, sequences
 from usp_jax.evaluation.statistics import per_pair
 from usp_jax.inference.matching import Matching
+from usp_jax.inference.turning import in_plane_rotation
 
 
 def by_view(rows: list[dict]) -> dict[str, dict[int, dict[str, float]]]:
@@ -36,22 +37,6 @@ WIDE_ROTATION_RANGES = tuple((low, low + 30) for low in range(0, 180, 30))
 # Below this largest rotation the wide ranges would be two, coarser than the fine ones; the
 # held-out pairs reach 37 degrees (one pair; the rest stay under 24).
 WIDE_FROM = 60
-
-
-def in_plane_rotation(homography: np.ndarray, shape: tuple[int, int]) -> float:
-    """In-plane rotation in degrees of a [3, 3] homography at the centre of an image of ``shape``
-    (H, W): the angle of the similarity closest to H's Jacobian there (its rotation part,
-    ``atan2(J10 - J01, J00 + J11)``), positive = clockwise on screen (x right, y down)."""
-    height, width = shape
-    centre = np.array([(width - 1) / 2, (height - 1) / 2, 1.0])
-    projected = homography @ centre
-    # d(p / w) / dx = (H[:2, :2] w - p H[2, :2]) / w**2 for the homogeneous image p = H @ (x, y, 1).
-    jacobian = (
-        homography[:2, :2] * projected[2] - np.outer(projected[:2], homography[2, :2])
-    ) / projected[2] ** 2
-    return math.degrees(
-        math.atan2(jacobian[1, 0] - jacobian[0, 1], jacobian[0, 0] + jacobian[1, 1])
-    )
 
 
 def rotation_ranges(angles) -> tuple[tuple[int, int | None], ...]:

@@ -277,7 +277,7 @@ def plot_example_pair(
     first = next((f for f in files if f.split == "v"), files[0]).scene
     pair = sequences.read_pair([f for f in files if f.scene == first][-1])
     im1, im2, h = sequences.resize_pair(pair.image1, pair.image2, pair.homography, *res)
-    f1, f2 = (protocol.detect(method, im, nms) for im in (im1, im2))
+    f1, f2 = protocol.detect_both(method, im1, im2, nms)
     f1, f2, matching = homography_matching(
         f1, f2, h, im1.shape[:2], im2.shape[:2], top_k, method.norm
     )

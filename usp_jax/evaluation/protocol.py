@@ -28,6 +28,7 @@ from usp_jax.evaluation.metrics import (
     take,
 )
 from usp_jax.evaluation.sequences import Pair, read_pair, resize_pair, scan_sequences
+from usp_jax.inference import turning
 from usp_jax.inference.detector import Detector
 from usp_jax.inference.features import Features
 from usp_jax.inference.nms import radius_nms_host
@@ -43,25 +44,44 @@ class Method:
     """A detector under evaluation: ``detect(uint8 [H, W, 3] RGB) -> Features``.
 
     ``norm`` is the descriptor distance, ``cv2.NORM_L2`` for float descriptors or
-    ``cv2.NORM_HAMMING`` for binary ones (ORB, AKAZE, BRISK).
+    ``cv2.NORM_HAMMING`` for binary ones (ORB, AKAZE, BRISK). ``detect_pair(image1, image2) ->
+    (features1, features2)``, when given, replaces ``detect`` for a method that looks at both
+    images before it describes them (matching across any rotation, ``inference.turning``).
     """
 
     name: str
     detect: Callable[[np.ndarray], Features]
     norm: int = cv2.NORM_L2
+    detect_pair: Callable[[np.ndarray, np.ndarray], tuple[Features, Features]] | None = None
 
 
-def as_method(detector: Detector, name: str = "UnsuperPoint") -> Method:
+def as_method(
+    detector: Detector, name: str = "UnsuperPoint", guide: Detector | None = None
+) -> Method:
     """The detector as an evaluation Method (L2 descriptors) returning ALL its candidate points:
     the evaluation applies NMS and top-k to every method alike, so ``detector``'s ``top_n``,
-    ``nms_radius`` and ``border`` are not used (its ``upsample`` is)."""
+    ``nms_radius`` and ``border`` are not used (its ``upsample`` is).
+
+    With a rotation-invariant ``guide`` the method matches across any rotation: image 2 is
+    detected turned back by the angle the guide estimates (``turning.detect_pair``)."""
     every_point = Detector(detector.variables, detector.model_config, upsample=detector.upsample)
-    return Method(name, every_point.detect, cv2.NORM_L2)
+    if guide is None:
+        return Method(name, every_point.detect, cv2.NORM_L2)
+
+    def detect_pair(image1: np.ndarray, image2: np.ndarray) -> tuple[Features, Features]:
+        return turning.detect_pair(every_point, guide, image1, image2)[:2]
+
+    return Method(name, every_point.detect, cv2.NORM_L2, detect_pair)
 
 
-def methods(detector: Detector | None, baselines: Sequence[str], top_k: int) -> list[Method]:
-    """The methods of one evaluation: ``detector`` (if any, :func:`as_method`) and the named OpenCV
-    ``baselines``, in that order, for a protocol keeping ``top_k`` points.
+def methods(
+    detector: Detector | None,
+    baselines: Sequence[str],
+    top_k: int,
+    guide: Detector | None = None,
+) -> list[Method]:
+    """The methods of one evaluation: ``detector`` (if any, :func:`as_method`, with ``guide``) and
+    the named OpenCV ``baselines``, in that order, for a protocol keeping ``top_k`` points.
 
     The evaluation applies NMS and the shared-view filter before its own top-k, to
     UnsuperPoint's full candidate set; a baseline cut at exactly top-k before them would be left
@@ -69,7 +89,7 @@ def methods(detector: Detector | None, baselines: Sequence[str], top_k: int) -> 
     """
     from usp_jax.evaluation.baselines import opencv_method
 
-    found = [as_method(detector)] if detector is not None else []
+    found = [as_method(detector, guide=guide)] if detector is not None else []
     return found + [opencv_method(name, 4 * top_k) for name in baselines]
 
 
@@ -140,10 +160,19 @@ def detect(method: Method, image: np.ndarray, nms: float = 0.0) -> Features:
     return _checked(method.detect(image), method, nms)
 
 
+def detect_both(
+    method: Method, image1: np.ndarray, image2: np.ndarray, nms: float = 0.0
+) -> tuple[Features, Features]:
+    """:func:`detect` of both images of a pair, through ``method.detect_pair`` when it has one."""
+    if method.detect_pair is None:
+        return detect(method, image1, nms), detect(method, image2, nms)
+    found = method.detect_pair(image1, image2)
+    return tuple(_checked(features, method, nms) for features in found)
+
+
 def evaluate_pair(method: Method, pair: Pair, config: EvalConfig) -> PairResult:
     """Run one method on one (already resized) pair and compute every metric."""
-    features1 = detect(method, pair.image1, config.nms)
-    features2 = detect(method, pair.image2, config.nms)
+    features1, features2 = detect_both(method, pair.image1, pair.image2, config.nms)
     shape1, shape2 = pair.image1.shape[:2], pair.image2.shape[:2]
     args = (features1, features2, pair.homography, shape1, shape2, config.top_k)
     rs, le = repeatability(*args)

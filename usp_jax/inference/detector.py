@@ -311,19 +311,30 @@ class Detector:
     def _shrinks(self, size: tuple[int, int]) -> bool:
         return 0 < self.max_side < max(size)
 
-    def _detect_shrunk(self, image: np.ndarray, top_n: int | None) -> Features:
-        """One image, shrunk to ``max_side`` on its longer side if it is longer, keypoints mapped
-        back. A 12-megapixel photo at native size takes gigabytes of activations and seconds on
-        a CPU, and the network was trained on 240x320 views anyway. ``cv2.resize`` scales about
-        pixel corners, so a point x' of the copy is x = (x' + 0.5) * W / W' - 0.5."""
+    def shrink(self, image: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``image`` shrunk to ``max_side`` on its longer side if it is longer (``INTER_AREA``),
+        and the float32 [2] (x, y) factors that take the copy's pixels back to the original's:
+        ``x = (x' + 0.5) * factors - 0.5`` (``cv2.resize`` scales about pixel corners). Others
+        come back as they are, with factors 1. A 12-megapixel photo at native size takes
+        gigabytes of activations and seconds on a CPU, and the network was trained on 240x320
+        views anyway."""
         height, width = image.shape[:2]
         if not self._shrinks((height, width)):
-            return self._run(image[None], top_n)[0]
+            return image, np.ones(2, np.float32)
         scale = max(height, width) / self.max_side
         size = (max(round(width / scale), CELL), max(round(height / scale), CELL))
         small = cv2.resize(image, size, interpolation=cv2.INTER_AREA)
+        return small, np.array([width / size[0], height / size[1]], np.float32)
+
+    def detect_as_is(self, image: np.ndarray, top_n: int | None = None) -> Features:
+        """:meth:`detect` at the image's own size, whatever ``max_side`` says (for an image the
+        caller has already shrunk, such as a turned copy of one)."""
+        return self._run(_as_rgb(image)[None], top_n)[0]
+
+    def _detect_shrunk(self, image: np.ndarray, top_n: int | None) -> Features:
+        """One image, :meth:`shrink`-ed, keypoints mapped back."""
+        small, factors = self.shrink(image)
         features = self._run(small[None], top_n)[0]
-        factors = np.array([width / size[0], height / size[1]], np.float32)
         return features._replace(keypoints=(features.keypoints + 0.5) * factors - 0.5)
 
     def _run(self, stack: np.ndarray, top_n: int | None) -> list[Features]:

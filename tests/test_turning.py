@@ -1,0 +1,130 @@
+"""Matching across any in-plane rotation (``usp_jax.inference.turning``)."""
+
+import cv2
+import numpy as np
+import pytest
+
+from usp_jax import evaluation
+from usp_jax.inference import Detector, Features, turning
+
+
+@pytest.fixture(scope="module")
+def small_photo(photo):
+    """The test photo at 256x256: the network's shapes stay cheap to compile."""
+    return cv2.resize(photo, (256, 256), interpolation=cv2.INTER_AREA)
+
+
+def _turned_by(image, angle, scale=1.0):
+    """``image`` turned ``angle`` degrees counter-clockwise about its centre, same size, and that
+    homography [3, 3]."""
+    height, width = image.shape[:2]
+    truth = cv2.getRotationMatrix2D(((width - 1) / 2, (height - 1) / 2), angle, scale)
+    truth = np.vstack([truth, [0, 0, 1]])
+    return cv2.warpPerspective(image, truth, (width, height)), truth
+
+
+@pytest.mark.parametrize("angle", [0.0, 37.0, 90.0, -150.0])
+def test_turn_is_opencvs_rotation_about_the_centre_on_a_canvas_holding_the_whole_image(angle):
+    image = np.random.default_rng(0).integers(0, 256, (24, 40, 3), dtype=np.uint8)
+    canvas, affine = turning.turn(image, angle)
+    # The diagonal, 46.6 px, rounded up to whole 8 px cells; the image centre at the canvas's.
+    assert canvas.shape == (48, 48, 3)
+    expected = cv2.getRotationMatrix2D((19.5, 11.5), angle, 1.0) + [[0, 0, 4], [0, 0, 12]]
+    np.testing.assert_allclose(affine, expected, atol=1e-12)
+    corners = cv2.transform(np.float64([[[0, 0], [39, 0], [0, 23], [39, 23]]]), affine)[0]
+    assert corners.min() >= 0 and corners.max() <= 47
+
+
+def test_a_quarter_turn_moves_every_pixel_whole():
+    image = np.random.default_rng(1).integers(0, 256, (24, 40, 3), dtype=np.uint8)
+    canvas, affine = turning.turn(image, 90.0)
+    ys, xs = np.mgrid[:24, :40]
+    # Counter-clockwise on screen: x' = y + 12, y' = 43 - x on this canvas.
+    np.testing.assert_array_equal(canvas[43 - xs, ys + 12], image)
+    np.testing.assert_allclose(affine, [[0, 1, 12], [-1, 0, 43]], atol=1e-12)
+
+
+@pytest.mark.parametrize("angle", [37.0, 120.0, -150.0])
+def test_in_plane_rotation_reads_the_angle_that_turning_back_undoes(angle):
+    _, affine = turning.turn(np.zeros((24, 40), np.uint8), angle)
+    homography = np.vstack([affine, [0, 0, 1]])
+    assert turning.in_plane_rotation(homography, (24, 40)) == pytest.approx(-angle)
+    _, back = turning.turn(np.zeros((24, 40)), turning.in_plane_rotation(homography, (24, 40)))
+    np.testing.assert_allclose(back[:, :2] @ affine[:, :2], np.eye(2), atol=1e-12)
+
+
+class _PlacedPoints(Detector):
+    """A Detector whose network returns fixed points of the (canvas) image it is given, best
+    first, with descriptors that number them; it records the shape it saw."""
+
+    def __init__(self, points, max_side=0):
+        self.points = np.float32(points)
+        self.max_side = max_side
+        self.top_n = None
+
+    def _call(self, padded, sizes, top_n):
+        self.shape = tuple(sizes[0])
+        n = len(self.points)
+        scores = np.linspace(1, 0.5, n, dtype=np.float32)
+        return [Features(self.points, scores, np.eye(n, dtype=np.float32))]
+
+
+@pytest.mark.parametrize("max_side", [0, 100])
+def test_turned_detections_come_back_in_the_images_pixels_without_the_canvas_edges(max_side):
+    image = np.zeros((200, 300, 3), np.uint8)
+    # Shrunk to 100 px on its longer side: 67x100, so x scales back by 3 and y by 200 / 67.
+    small_shape, factor = ((67, 100), np.array([3, 200 / 67])) if max_side else ((200, 300), 1)
+    _, affine = turning.turn(np.zeros(small_shape, np.uint8), 120.0)
+    inside = np.float64([[50, 30], [20, 10]])  # in the (shrunk) image's pixels
+    on_canvas = cv2.transform(inside[None], affine)[0]
+    edge = cv2.transform(np.float64([[[1, 1]]]), affine)[0]  # within EDGE_MARGIN of a corner
+    points = [on_canvas[0], [0, 0], edge[0], on_canvas[1]]  # [0, 0]: the empty canvas corner
+    detector = _PlacedPoints(points, max_side)
+    found = turning.detect_turned(detector, image, 120.0)
+    side = 8 * int(np.ceil(np.hypot(*small_shape) / 8))
+    assert detector.shape == (side, side)
+    np.testing.assert_allclose(found.keypoints, (inside + 0.5) * factor - 0.5, atol=1e-3)
+    np.testing.assert_array_equal(found.descriptors.argmax(axis=1), [0, 3])  # which points
+    assert turning.detect_turned(detector, image, 120.0, top_n=1).keypoints.shape == (1, 2)
+    detector.top_n = 1  # the detector's own cut applies when top_n is not given
+    assert turning.detect_turned(detector, image, 120.0).keypoints.shape == (1, 2)
+
+
+def test_matching_across_any_rotation_recovers_a_photo_turned_past_the_upright_range(small_photo):
+    detector = Detector.pretrained(top_n=500)
+    turned, truth = _turned_by(small_photo, -150.0, 0.9)
+    upright = detector.detect(small_photo), detector.detect(turned)
+    plain = evaluation.corner_error(
+        truth, evaluation.match_and_estimate(*upright).homography, (256, 256)
+    )
+    found = turning.match_any_rotation(detector, small_photo, turned)
+    assert plain > 10  # the upright weights alone lose the photo at this angle
+    assert found.angle == pytest.approx(150.0, abs=3)
+    assert evaluation.corner_error(truth, found.matching.homography, (256, 256)) < 3
+    assert int(found.matching.inliers.sum()) >= 20
+
+
+def test_a_pair_turned_within_the_upright_range_is_detected_as_it_is(small_photo):
+    detector = Detector.pretrained(top_n=500)
+    turned, _ = _turned_by(small_photo, 5.0)
+    features1, features2, angle = turning.detect_pair(
+        detector, Detector.pretrained("rotation"), small_photo, turned
+    )
+    assert angle == 0.0
+    np.testing.assert_array_equal(features2.keypoints, detector.detect(turned).keypoints)
+    np.testing.assert_array_equal(features1.keypoints, detector.detect(small_photo).keypoints)
+
+
+@pytest.mark.parametrize("inliers, expected_angle", [(5, 0.0), (50, 90.0)])
+def test_an_unsure_guide_costs_a_detection_not_the_pair(
+    small_photo, monkeypatch, inliers, expected_angle
+):
+    # An upright pair and a guide claiming a quarter turn: trusted with many inliers, checked
+    # against the upright detection with few (which then wins: it matches the pair).
+    monkeypatch.setattr(turning, "estimate_turn", lambda *_: turning.Turn(90.0, inliers))
+    detector = Detector.pretrained(top_n=500)
+    shifted = np.roll(small_photo, 3, axis=1)
+    _, features2, angle = turning.detect_pair(detector, None, small_photo, shifted)
+    assert angle == expected_angle
+    if expected_angle == 0.0:
+        np.testing.assert_array_equal(features2.keypoints, detector.detect(shifted).keypoints)

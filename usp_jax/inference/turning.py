@@ -1,0 +1,180 @@
+"""Matching across any in-plane rotation with upright weights.
+
+The upright weights match well up to ~10-20 degrees of in-plane rotation and fail beyond; the
+rotation-invariant weights (``Detector.pretrained("rotation")``) match at any angle, but far
+less distinctively. Together they do better than either: the rotation-invariant network (the
+*guide*) estimates how far image 2 is turned from image 1, image 2 is turned back by that angle,
+and the upright network matches the pair (experiments/RESULTS.md, "Any rotation": on rotated
+viewpoint pairs MS 0.246 -> 0.457 and HA@3 0.31 -> 0.71, at the cost of two guide detections
+and one detection on a larger canvas).
+
+Angles are degrees, positive = counter-clockwise on screen (``cv2.getRotationMatrix2D``'s
+sense); :func:`in_plane_rotation` reads the opposite, clockwise, sense from a homography, so
+turning image 2 by ``in_plane_rotation(H)`` undoes H's rotation.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import NamedTuple
+
+import cv2
+import numpy as np
+
+from usp_jax.core.model import CELL
+from usp_jax.inference.detector import Detector
+from usp_jax.inference.features import Features
+from usp_jax.inference.matching import Matching, match_and_estimate
+
+#: Below this estimated turn (degrees) image 2 is detected as it is: the upright weights hold up
+#: to there, and a turned copy costs a larger canvas.
+UPRIGHT_BELOW = 10.0
+#: Turned-back points closer than this (px) to image 2's edges are dropped: on the canvas the
+#: photo's edges meet the empty corners, and the network fires on that artificial edge.
+EDGE_MARGIN = 4.0
+#: Points of each image the guide matches to estimate the turn (the evaluation's top-k).
+GUIDE_POINTS = 300
+#: Fewer RANSAC inliers than this leave the guide's angle in doubt: 4 points fit a homography,
+#: and a handful more agree by chance on hard pairs (wrong angles came with 6-7 inliers on the
+#: held-out rotated pairs; right ones with a median of 48).
+GUIDE_MIN_INLIERS = 10
+
+
+def in_plane_rotation(homography: np.ndarray, shape: tuple[int, int]) -> float:
+    """In-plane rotation in degrees of a [3, 3] homography at the centre of an image of ``shape``
+    (H, W): the angle of the similarity closest to H's Jacobian there (its rotation part,
+    ``atan2(J10 - J01, J00 + J11)``), positive = clockwise on screen (x right, y down)."""
+    height, width = shape
+    centre = np.array([(width - 1) / 2, (height - 1) / 2, 1.0])
+    projected = homography @ centre
+    # d(p / w) / dx = (H[:2, :2] w - p H[2, :2]) / w**2 for the homogeneous image p = H @ (x, y, 1).
+    jacobian = (
+        homography[:2, :2] * projected[2] - np.outer(projected[:2], homography[2, :2])
+    ) / projected[2] ** 2
+    return math.degrees(
+        math.atan2(jacobian[1, 0] - jacobian[0, 1], jacobian[0, 0] + jacobian[1, 1])
+    )
+
+
+def turn(image: np.ndarray, angle: float) -> tuple[np.ndarray, np.ndarray]:
+    """``image`` [H, W(, 3)] turned by ``angle`` degrees about its centre onto a square canvas that
+    holds all of it (side: the diagonal, rounded up to whole cells; the rest is black), and the
+    float64 [2, 3] affine taking the image's pixels (x, y) to the canvas's."""
+    height, width = image.shape[:2]
+    side = CELL * math.ceil(math.hypot(height, width) / CELL)
+    affine = cv2.getRotationMatrix2D(((width - 1) / 2, (height - 1) / 2), angle, 1.0)
+    affine[:, 2] += ((side - width) / 2, (side - height) / 2)
+    canvas = cv2.warpAffine(image, affine, (side, side), flags=cv2.INTER_LINEAR)
+    return canvas, affine
+
+
+def detect_turned(
+    detector: Detector, image: np.ndarray, angle: float, top_n: int | None = None
+) -> Features:
+    """``detector``'s features of ``image`` turned by ``angle`` degrees, keypoints in ``image``'s
+    own pixels, points within ``EDGE_MARGIN`` px of its edges dropped, at most ``top_n`` (by
+    score; None: the detector's ``top_n``). Photos longer than the detector's ``max_side`` are shrunk before turning, as
+    :meth:`Detector.detect` would shrink them, so both images of a pair meet the network at one
+    scale."""
+    height, width = image.shape[:2]
+    small, factors = detector.shrink(image)
+    canvas, affine = turn(small, angle)
+    features = detector.detect_as_is(canvas)
+    back = cv2.transform(
+        np.asarray(features.keypoints, np.float64).reshape(-1, 1, 2),
+        cv2.invertAffineTransform(affine),
+    ).reshape(-1, 2)
+    back = (back + 0.5) * factors - 0.5
+    inside = (
+        (back[:, 0] >= EDGE_MARGIN)
+        & (back[:, 0] <= width - 1 - EDGE_MARGIN)
+        & (back[:, 1] >= EDGE_MARGIN)
+        & (back[:, 1] <= height - 1 - EDGE_MARGIN)
+    )
+    top_n = detector.top_n if top_n is None else top_n
+    keep = np.flatnonzero(inside)[:top_n]  # Scores come sorted, best first.
+    return Features(
+        back[keep].astype(np.float32), features.scores[keep], features.descriptors[keep]
+    )
+
+
+class Turn(NamedTuple):
+    """The guide's estimate: ``angle`` in degrees (:func:`in_plane_rotation` of its homography, 0
+    without one) and the RANSAC ``inliers`` behind it."""
+
+    angle: float
+    inliers: int
+
+
+def _matched(features1: Features, features2: Features) -> Matching:
+    """:func:`match_and_estimate` on the ``GUIDE_POINTS`` best points of each (scores sorted)."""
+    return match_and_estimate(
+        *(Features(*(array[:GUIDE_POINTS] for array in f)) for f in (features1, features2))
+    )
+
+
+def estimate_turn(guide: Detector, image1: np.ndarray, image2: np.ndarray) -> Turn:
+    """How far ``image2`` is turned from ``image1``, by the homography ``guide`` estimates between
+    them from ``GUIDE_POINTS`` points each. ``guide`` should be rotation-invariant (the
+    ``rotation`` weights)."""
+    matching = _matched(*guide.detect_batch([image1, image2], top_n=GUIDE_POINTS))
+    if matching.homography is None:
+        return Turn(0.0, 0)
+    return Turn(
+        in_plane_rotation(matching.homography, image1.shape[:2]), int(matching.inliers.sum())
+    )
+
+
+def detect_pair(
+    detector: Detector,
+    guide: Detector,
+    image1: np.ndarray,
+    image2: np.ndarray,
+    top_n: int | None = None,
+) -> tuple[Features, Features, float]:
+    """Features of both images for matching across any rotation: ``image1`` as it is, ``image2``
+    turned back by :func:`estimate_turn`'s angle, both in their own pixels. Returns (features1,
+    features2, the angle image 2 was turned back by).
+
+    Below ``UPRIGHT_BELOW`` degrees image 2 is detected as it is. When the guide's homography
+    rests on fewer than ``GUIDE_MIN_INLIERS`` inliers (a hard pair, where its angle can be far
+    off), image 2 is detected both ways and the way ``detector`` finds more RANSAC inliers with
+    is kept, so an unsure guide costs one more detection, not the pair."""
+    turn = estimate_turn(guide, image1, image2)
+    features1 = detector.detect(image1, top_n)
+    if abs(turn.angle) < UPRIGHT_BELOW:
+        return features1, detector.detect(image2, top_n), 0.0
+    turned = detect_turned(detector, image2, turn.angle, top_n)
+    if turn.inliers >= GUIDE_MIN_INLIERS:
+        return features1, turned, turn.angle
+    upright = detector.detect(image2, top_n)
+    if _matched(features1, upright).inliers.sum() >= _matched(features1, turned).inliers.sum():
+        return features1, upright, 0.0
+    return features1, turned, turn.angle
+
+
+class TurnedMatching(NamedTuple):
+    """:func:`match_any_rotation`'s result: the ``matching`` (indices into ``features1`` and
+    ``features2``, homography from image 1 to image 2 in their own pixels), the ``angle`` in
+    degrees image 2 was turned back by before detection (0: detected upright) and the features."""
+
+    matching: Matching
+    angle: float
+    features1: Features
+    features2: Features
+
+
+def match_any_rotation(
+    detector: Detector,
+    image1: np.ndarray,
+    image2: np.ndarray,
+    guide: Detector | None = None,
+    top_n: int | None = None,
+) -> TurnedMatching:
+    """Mutual nearest neighbours and the RANSAC homography (:func:`match_and_estimate`) of two
+    images turned by any in-plane angle, with upright weights in ``detector``: :func:`detect_pair`
+    with ``guide`` (default: the shipped ``rotation`` weights at ``detector``'s ``max_side``)."""
+    if guide is None:
+        guide = Detector.pretrained("rotation", max_side=detector.max_side)
+    features1, features2, angle = detect_pair(detector, guide, image1, image2, top_n)
+    return TurnedMatching(match_and_estimate(features1, features2), angle, features1, features2)
