@@ -5,7 +5,7 @@ rotation-invariant weights (``Detector.pretrained("rotation")``) match at any an
 less distinctively. Together they do better than either: the rotation-invariant network (the
 *guide*) estimates how far image 2 is turned from image 1, image 2 is turned back by that angle,
 and the upright network matches the pair (experiments/RESULTS.md, "Any rotation": on rotated
-viewpoint pairs MS 0.246 -> 0.457 and HA@3 0.31 -> 0.71, at the cost of two guide detections
+viewpoint pairs MS 0.246 -> 0.464 and HA@3 0.31 -> 0.70, at the cost of two guide detections
 and one detection on a larger canvas).
 
 Angles are degrees, positive = counter-clockwise on screen (``cv2.getRotationMatrix2D``'s
