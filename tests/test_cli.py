@@ -8,6 +8,7 @@ from conftest import TINY_RUN, USP_JAX, child_env, train_args
 
 from usp_jax import evaluation
 from usp_jax.cli import main, parse_args
+from usp_jax.inference import weights as weights_lib
 
 
 @pytest.fixture(scope="module")
@@ -101,6 +102,12 @@ def test_match_across_any_rotation_turns_image_2_back_and_recovers_the_homograph
     assert evaluation.corner_error(truth, np.array(result["homography"]), (256, 256)) < 3
     assert main(argv) == 0  # without the flag nothing is turned
     assert json.loads(out.read_text())["turned_back_degrees"] is None
+    # A guide given as a weights file works like the shipped name it was copied from.
+    guide = tmp_path / "guide.npz"
+    guide.write_bytes((weights_lib.WEIGHTS_DIR / "rotation.npz").read_bytes())
+    assert main([*argv, "--any-rotation", "--guide", str(guide)]) == 0
+    assert json.loads(out.read_text())["turned_back_degrees"] == result["turned_back_degrees"]
+    assert main([*argv, "--any-rotation", "--guide", str(tmp_path / "missing.npz")]) == 2
 
 
 @pytest.mark.parametrize(

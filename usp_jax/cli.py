@@ -77,10 +77,16 @@ def _load_detector(args, **options):
 
 
 def _guide(args, **options):
-    """The rotation-invariant guide of ``--any-rotation`` (None without it)."""
+    """The rotation-invariant guide of ``--any-rotation`` (None without it), ``--guide``:
+    shipped weights by name, else a weights file or training workdir."""
     from usp_jax.inference.detector import Detector
+    from usp_jax.inference.weights import PRETRAINED
 
-    return Detector.pretrained("rotation", **options) if args.any_rotation else None
+    if not args.any_rotation:
+        return None
+    if args.guide in PRETRAINED:
+        return Detector.pretrained(args.guide, **options)
+    return Detector.load(args.guide, **options)
 
 
 def cmd_train(args) -> None:

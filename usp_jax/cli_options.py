@@ -83,8 +83,14 @@ def _add_any_rotation(parser) -> None:
     parser.add_argument(
         "--any-rotation",
         action="store_true",
-        help="match across any in-plane rotation: the shipped rotation-invariant weights"
-        " estimate how far image 2 is turned, and the model matches it turned back",
+        help="match across any in-plane rotation: rotation-invariant weights (--guide) estimate"
+        " how far image 2 is turned, and the model matches it turned back",
+    )
+    parser.add_argument(
+        "--guide",
+        default="rotation",
+        help="--any-rotation's rotation-invariant weights: a shipped name, a .npz weights file"
+        " or a training workdir (default: the shipped rotation weights)",
     )
 
 
