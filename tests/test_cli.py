@@ -108,6 +108,8 @@ def test_match_across_any_rotation_turns_image_2_back_and_recovers_the_homograph
     assert main([*argv, "--any-rotation", "--guide", str(guide)]) == 0
     assert json.loads(out.read_text())["turned_back_degrees"] == result["turned_back_degrees"]
     assert main([*argv, "--any-rotation", "--guide", str(tmp_path / "missing.npz")]) == 2
+    assert main([*argv, "--guide", str(guide)]) == 2  # a guide without --any-rotation
+    assert "--guide is only used with --any-rotation" in capsys.readouterr().err
 
 
 @pytest.mark.parametrize(

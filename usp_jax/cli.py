@@ -83,10 +83,13 @@ def _guide(args, **options):
     from usp_jax.inference.weights import PRETRAINED
 
     if not args.any_rotation:
+        if args.guide is not None:  # silently ignoring it would hide a forgotten flag
+            raise ValueError("--guide is only used with --any-rotation")
         return None
-    if args.guide in PRETRAINED:
-        return Detector.pretrained(args.guide, **options)
-    return Detector.load(args.guide, **options)
+    guide = args.guide or "rotation"
+    if guide in PRETRAINED:
+        return Detector.pretrained(guide, **options)
+    return Detector.load(guide, **options)
 
 
 def cmd_train(args) -> None:

@@ -88,7 +88,7 @@ def _add_any_rotation(parser) -> None:
     )
     parser.add_argument(
         "--guide",
-        default="rotation",
+        default=None,
         help="--any-rotation's rotation-invariant weights: a shipped name, a .npz weights file"
         " or a training workdir (default: the shipped rotation weights)",
     )
