@@ -79,3 +79,19 @@ def paper_finetune() -> config_lib.Config:
     """The paper network, stage 2: paper_network.py's 240x320 stage 6, turned, 3,000 steps."""
     more = ["seed=32", "num_steps=3000", "optim.decay_steps=2900"]
     return config_lib.override(config_lib.load(f"{_PAPER}:stage6"), _ROTATION + _LIGHTING + more)
+
+
+def paper_from_upright() -> config_lib.Config:
+    """The paper network turned starting from the shipped upright weights instead of from
+    scratch (``--init usp_jax/weights/paper.npz``): paper_network.py's stage 3 setting (128x160,
+    a warm-up to 3e-4 and a cosine) turned over the full circle with the strongest lighting
+    changes, 6,000 steps. Not the issue's "rotations from the first step": an experiment on
+    whether the upright network's distinctive descriptors survive being taught invariance."""
+    more = [
+        "seed=33",
+        "optim.learning_rate=3e-4",
+        "optim.warmup_steps=200",
+        "num_steps=6000",
+        "optim.decay_steps=6000",
+    ]
+    return config_lib.override(config_lib.load(_PAPER), _ROTATION + _LIGHTING + more)

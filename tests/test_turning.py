@@ -23,7 +23,7 @@ def _turned_by(image, angle, scale=1.0):
     return cv2.warpPerspective(image, truth, (width, height)), truth
 
 
-@pytest.mark.parametrize("angle", [0.0, 37.0, 90.0, -150.0])
+@pytest.mark.parametrize("angle", [37.0, 100.0, -150.0])
 def test_turn_is_opencvs_rotation_about_the_centre_on_a_canvas_holding_the_whole_image(angle):
     image = np.random.default_rng(0).integers(0, 256, (24, 40, 3), dtype=np.uint8)
     canvas, affine = turning.turn(image, angle)
@@ -31,17 +31,51 @@ def test_turn_is_opencvs_rotation_about_the_centre_on_a_canvas_holding_the_whole
     assert canvas.shape == (48, 48, 3)
     expected = cv2.getRotationMatrix2D((19.5, 11.5), angle, 1.0) + [[0, 0, 4], [0, 0, 12]]
     np.testing.assert_allclose(affine, expected, atol=1e-12)
+    np.testing.assert_array_equal(canvas, cv2.warpAffine(image, expected, (48, 48)))
     corners = cv2.transform(np.float64([[[0, 0], [39, 0], [0, 23], [39, 23]]]), affine)[0]
     assert corners.min() >= 0 and corners.max() <= 47
 
 
-def test_a_quarter_turn_moves_every_pixel_whole():
+@pytest.mark.parametrize(
+    "angle, affine",
+    [
+        (0.0, [[1, 0, 0], [0, 1, 0]]),
+        # Counter-clockwise on screen: x' = y, y' = 39 - x in a 40x24 (H x W) image.
+        (90.0, [[0, 1, 0], [-1, 0, 39]]),
+        (180.0, [[-1, 0, 39], [0, -1, 23]]),
+        (-90.0, [[0, -1, 23], [1, 0, 0]]),
+        (270.0, [[0, -1, 23], [1, 0, 0]]),
+    ],
+)
+def test_a_quarter_turn_moves_every_pixel_whole_into_an_image_of_the_same_size(angle, affine):
     image = np.random.default_rng(1).integers(0, 256, (24, 40, 3), dtype=np.uint8)
-    canvas, affine = turning.turn(image, 90.0)
+    turned, found = turning.turn(image, angle)
+    np.testing.assert_array_equal(found, affine)
+    # OpenCV's own turn about the centre, shifted onto the turned image, agrees pixel for pixel.
+    size = (24, 40) if angle % 180 else (40, 24)
+    np.testing.assert_array_equal(turned, cv2.warpAffine(image, np.float64(affine), size))
     ys, xs = np.mgrid[:24, :40]
-    # Counter-clockwise on screen: x' = y + 12, y' = 43 - x on this canvas.
-    np.testing.assert_array_equal(canvas[43 - xs, ys + 12], image)
-    np.testing.assert_allclose(affine, [[0, 1, 12], [-1, 0, 43]], atol=1e-12)
+    moved = cv2.transform(np.stack([xs, ys], -1).reshape(1, -1, 2).astype(np.float64), found)
+    moved = moved.reshape(24, 40, 2).astype(int)
+    np.testing.assert_array_equal(turned[moved[..., 1], moved[..., 0]], image)
+
+
+@pytest.mark.parametrize(
+    "estimated, used",
+    [
+        (3.0, 0.0),
+        (-9.5, 0.0),
+        (85.0, 90.0),
+        (-172.0, -180.0),
+        (-95.0, -90.0),
+        (10.0, 10.0),
+        (30.0, 30.0),
+        (135.0, 135.0),
+        (-79.0, -79.0),
+    ],
+)
+def test_turns_within_the_upright_range_of_a_quarter_turn_snap_to_it(estimated, used):
+    assert turning.detectable_turn(estimated) == used
 
 
 @pytest.mark.parametrize("angle", [37.0, 120.0, -150.0])
@@ -128,3 +162,19 @@ def test_an_unsure_guide_costs_a_detection_not_the_pair(
     assert angle == expected_angle
     if expected_angle == 0.0:
         np.testing.assert_array_equal(features2.keypoints, detector.detect(shifted).keypoints)
+
+
+def test_a_guide_near_a_quarter_turn_turns_image_2_by_the_quarter_turn_alone(
+    small_photo, monkeypatch
+):
+    monkeypatch.setattr(turning, "estimate_turn", lambda *_: turning.Turn(-84.0, 50))
+    detector = Detector.pretrained(top_n=500)
+    image2 = small_photo[:, :200]  # not square: the quarter turn swaps H and W
+    _, features2, angle = turning.detect_pair(detector, None, small_photo, image2)
+    assert angle == -90.0
+    # Turned clockwise, (x, y) of image 2 lands at (H - 1 - y, x); every point maps back exactly,
+    # and none near the edges is dropped (there is no empty canvas).
+    direct = detector.detect(np.rot90(image2, -1))
+    expected = np.stack([direct.keypoints[:, 1], 255 - direct.keypoints[:, 0]], axis=1)
+    np.testing.assert_allclose(features2.keypoints, expected, atol=1e-4)
+    np.testing.assert_array_equal(features2.descriptors, direct.descriptors)

@@ -5,7 +5,7 @@ rotation-invariant weights (``Detector.pretrained("rotation")``) match at any an
 less distinctively. Together they do better than either: the rotation-invariant network (the
 *guide*) estimates how far image 2 is turned from image 1, image 2 is turned back by that angle,
 and the upright network matches the pair (experiments/RESULTS.md, "Any rotation": on rotated
-viewpoint pairs MS 0.246 -> 0.464 and HA@3 0.31 -> 0.70, at the cost of two guide detections
+viewpoint pairs MS 0.246 -> 0.470 and HA@3 0.31 -> 0.70, at the cost of two guide detections
 and one detection on a larger canvas).
 
 Angles are degrees, positive = counter-clockwise on screen (``cv2.getRotationMatrix2D``'s
@@ -26,8 +26,9 @@ from usp_jax.inference.detector import Detector
 from usp_jax.inference.features import Features
 from usp_jax.inference.matching import Matching, match_and_estimate
 
-#: Below this estimated turn (degrees) image 2 is detected as it is: the upright weights hold up
-#: to there, and a turned copy costs a larger canvas.
+#: Within this many degrees of a quarter turn (0, 90, 180 or -90) image 2 is turned by the quarter
+#: turn alone: the upright weights hold up to there, and a quarter turn moves every pixel whole
+#: (no resampling, no larger canvas); 0 detects image 2 as it is.
 UPRIGHT_BELOW = 10.0
 #: Turned-back points closer than this (px) to image 2's edges are dropped: on the canvas the
 #: photo's edges meet the empty corners, and the network fires on that artificial edge.
@@ -56,16 +57,38 @@ def in_plane_rotation(homography: np.ndarray, shape: tuple[int, int]) -> float:
     )
 
 
+def _quarter_turns(angle: float) -> int | None:
+    """``angle`` (degrees) in quarter turns when it is a whole number of them, else None."""
+    quarters = round(angle / 90)
+    return quarters if angle == 90 * quarters else None
+
+
 def turn(image: np.ndarray, angle: float) -> tuple[np.ndarray, np.ndarray]:
-    """``image`` [H, W(, 3)] turned by ``angle`` degrees about its centre onto a square canvas that
-    holds all of it (side: the diagonal, rounded up to whole cells; the rest is black), and the
-    float64 [2, 3] affine taking the image's pixels (x, y) to the canvas's."""
+    """``image`` [H, W(, 3)] turned by ``angle`` degrees about its centre, and the float64 [2, 3]
+    affine taking the image's pixels (x, y) to the turned copy's. A quarter turn (a multiple of 90
+    degrees) is exact: every pixel moves whole into an image of the same size (H and W swapped for
+    an odd one). Any other angle turns onto a square canvas that holds all of the image (side: the
+    diagonal, rounded up to whole cells; the rest is black)."""
     height, width = image.shape[:2]
-    side = CELL * math.ceil(math.hypot(height, width) / CELL)
+    quarters = _quarter_turns(angle)
+    if quarters is None:
+        out_width = out_height = CELL * math.ceil(math.hypot(height, width) / CELL)
+    else:
+        out_width, out_height = (height, width) if quarters % 2 else (width, height)
     affine = cv2.getRotationMatrix2D(((width - 1) / 2, (height - 1) / 2), angle, 1.0)
-    affine[:, 2] += ((side - width) / 2, (side - height) / 2)
-    canvas = cv2.warpAffine(image, affine, (side, side), flags=cv2.INTER_LINEAR)
+    affine[:, 2] += ((out_width - width) / 2, (out_height - height) / 2)
+    if quarters is not None:
+        # cos(90 degrees) is 6e-17 in floating point; the exact affine has whole entries.
+        return np.ascontiguousarray(np.rot90(image, quarters % 4)), np.round(affine)
+    canvas = cv2.warpAffine(image, affine, (out_width, out_height), flags=cv2.INTER_LINEAR)
     return canvas, affine
+
+
+def detectable_turn(angle: float) -> float:
+    """The angle to turn image 2 back by for an estimated turn of ``angle`` degrees: the nearest
+    quarter turn when it is within ``UPRIGHT_BELOW`` degrees, else ``angle`` itself."""
+    quarter = 90.0 * round(angle / 90)
+    return quarter if abs(angle - quarter) < UPRIGHT_BELOW else angle
 
 
 def detect_turned(
@@ -85,11 +108,13 @@ def detect_turned(
         cv2.invertAffineTransform(affine),
     ).reshape(-1, 2)
     back = (back + 0.5) * factors - 0.5
+    # Only a turn off the quarter turns puts the photo's edges against empty canvas.
+    margin = 0.0 if _quarter_turns(angle) is not None else EDGE_MARGIN
     inside = (
-        (back[:, 0] >= EDGE_MARGIN)
-        & (back[:, 0] <= width - 1 - EDGE_MARGIN)
-        & (back[:, 1] >= EDGE_MARGIN)
-        & (back[:, 1] <= height - 1 - EDGE_MARGIN)
+        (back[:, 0] >= margin)
+        & (back[:, 0] <= width - 1 - margin)
+        & (back[:, 1] >= margin)
+        & (back[:, 1] <= height - 1 - margin)
     )
     top_n = detector.top_n if top_n is None else top_n
     keep = np.flatnonzero(inside)[:top_n]  # Scores come sorted, best first.
@@ -136,21 +161,23 @@ def detect_pair(
     turned back by :func:`estimate_turn`'s angle, both in their own pixels. Returns (features1,
     features2, the angle image 2 was turned back by).
 
-    Below ``UPRIGHT_BELOW`` degrees image 2 is detected as it is. When the guide's homography
-    rests on fewer than ``GUIDE_MIN_INLIERS`` inliers (a hard pair, where its angle can be far
-    off), image 2 is detected both ways and the way ``detector`` finds more RANSAC inliers with
+    Within ``UPRIGHT_BELOW`` degrees of a quarter turn image 2 is turned by the quarter turn
+    alone (:func:`detectable_turn`), so below it image 2 is detected as it is. When the guide's
+    homography rests on fewer than ``GUIDE_MIN_INLIERS`` inliers (a hard pair, where its angle can
+    be far off), image 2 is detected both ways and the way ``detector`` finds more RANSAC inliers with
     is kept, so an unsure guide costs one more detection, not the pair."""
     turn = estimate_turn(guide, image1, image2)
+    angle = detectable_turn(turn.angle)
     features1 = detector.detect(image1, top_n)
-    if abs(turn.angle) < UPRIGHT_BELOW:
+    if angle == 0:
         return features1, detector.detect(image2, top_n), 0.0
-    turned = detect_turned(detector, image2, turn.angle, top_n)
+    turned = detect_turned(detector, image2, angle, top_n)
     if turn.inliers >= GUIDE_MIN_INLIERS:
-        return features1, turned, turn.angle
+        return features1, turned, angle
     upright = detector.detect(image2, top_n)
     if _matched(features1, upright).inliers.sum() >= _matched(features1, turned).inliers.sum():
         return features1, upright, 0.0
-    return features1, turned, turn.angle
+    return features1, turned, angle
 
 
 class TurnedMatching(NamedTuple):
