@@ -233,6 +233,10 @@ def test_match_recovers_a_known_homography_between_a_photo_and_its_warp(photo, t
         ),
         (["train", "--data", "sample", "--workdir", "{tmp}/w", "batch_size=five"], "batch_size"),
         (["evaluate", "--hpatches", "{tmp}/nothing", "--baselines-only"], "nothing"),
+        (
+            ["evaluate", "--hpatches", "{tmp}", "--baselines-only", "--guide", "rotation"],
+            "--guide is only used with --any-rotation",
+        ),
         (["detect", "{tmp}/absent.png", "--checkpoint", "{tmp}/none"], "none"),
         (["evaluate", "--hpatches", "{tmp}", "--checkpoint", "{tmp}/gone.npz"], "gone.npz"),
         (["match", "{tmp}/absent.png", "{tmp}/other.png"], "absent.png"),

@@ -76,15 +76,17 @@ def _load_detector(args, **options):
     return Detector.load(getattr(args, "checkpoint", None) or None, **options)
 
 
-def _guide(args, **options):
-    """The rotation-invariant guide of ``--any-rotation`` (None without it), ``--guide``:
-    shipped weights by name, else a weights file or training workdir."""
+def _guide(args, checked_only: bool = False, **options):
+    """The rotation-invariant guide of ``--any-rotation`` (None without it, or with
+    ``checked_only``: the options are only checked), ``--guide``: shipped weights by name, else a
+    weights file or training workdir."""
     from usp_jax.inference.detector import Detector
     from usp_jax.inference.weights import PRETRAINED
 
-    if not args.any_rotation:
-        if args.guide is not None:  # silently ignoring it would hide a forgotten flag
-            raise ValueError("--guide is only used with --any-rotation")
+    if args.guide is not None and not args.any_rotation:
+        # Silently ignoring it would hide a forgotten flag.
+        raise ValueError("--guide is only used with --any-rotation")
+    if checked_only or not args.any_rotation:
         return None
     guide = args.guide or "rotation"
     if guide in PRETRAINED:
@@ -142,7 +144,7 @@ def cmd_evaluate(args) -> None:
     detector = None if args.baselines_only else _load_detector(args)
     height, width = args.res
     baselines = [name.strip() for name in args.baselines.split(",") if name.strip()]
-    guide = _guide(args) if detector is not None else None
+    guide = _guide(args) if detector is not None else _guide(args, checked_only=True)
     methods = protocol.methods(detector, baselines, args.top, guide)
     results = protocol.evaluate(
         methods,
