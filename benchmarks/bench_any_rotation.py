@@ -10,7 +10,9 @@ matching included:
   shipped ``rotation`` weights as the guide (two guide detections, one upright detection, one
   on the turned-back canvas, then ``match_and_estimate``);
 * ``rotation weights``: both images with the ``rotation`` weights alone, then
-  ``match_and_estimate``.
+  ``match_and_estimate``;
+* ``upright, upsample 2`` and ``any rotation, upsample 2``: the first two with the default
+  weights run on 2x enlarged images (``Detector(upsample=2)``; the guide stays as it is).
 
 From the repository root::
 
@@ -39,6 +41,7 @@ def main() -> None:
     turn = cv2.getRotationMatrix2D(((width - 1) / 2, (height - 1) / 2), 120, 1.0)
     turned = cv2.warpAffine(photo, turn, (width, height))
     upright, guide = Detector.pretrained(top_n=300), Detector.pretrained("rotation", top_n=300)
+    enlarged = Detector.pretrained(top_n=300, upsample=2)
 
     def plain(detector):
         return lambda: match_and_estimate(detector.detect(photo), detector.detect(turned))
@@ -47,11 +50,13 @@ def main() -> None:
         "upright": plain(upright),
         "any rotation": lambda: match_any_rotation(upright, photo, turned, guide),
         "rotation weights": plain(guide),
+        "upright, upsample 2": plain(enlarged),
+        "any rotation, upsample 2": lambda: match_any_rotation(enlarged, photo, turned, guide),
     }
     times = common.interleaved(runs, args.rounds, args.block)
     print(f"one {height}x{width} pair, 300 points per image, median of {args.rounds * args.block}:")
     for name, seconds in times.items():
-        print(f"  {name:<17} {common.summary(seconds)}")
+        print(f"  {name:<25} {common.summary(seconds)}")
 
 
 if __name__ == "__main__":

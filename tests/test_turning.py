@@ -25,15 +25,17 @@ def _turned_by(image, angle, scale=1.0):
 
 @pytest.mark.parametrize("angle", [37.0, 100.0, -150.0])
 def test_turn_is_opencvs_rotation_about_the_centre_on_a_canvas_holding_the_whole_image(angle):
-    image = np.random.default_rng(0).integers(0, 256, (24, 40, 3), dtype=np.uint8)
+    image = np.random.default_rng(0).integers(1, 256, (24, 40, 3), dtype=np.uint8)
     canvas, affine = turning.turn(image, angle)
     # The diagonal, 46.6 px, rounded up to whole 8 px cells; the image centre at the canvas's.
     assert canvas.shape == (48, 48, 3)
     expected = cv2.getRotationMatrix2D((19.5, 11.5), angle, 1.0) + [[0, 0, 4], [0, 0, 12]]
     np.testing.assert_allclose(affine, expected, atol=1e-12)
-    np.testing.assert_array_equal(canvas, cv2.warpAffine(image, expected, (48, 48)))
+    mirrored = cv2.warpAffine(image, expected, (48, 48), borderMode=cv2.BORDER_REFLECT_101)
+    np.testing.assert_array_equal(canvas, mirrored)
     corners = cv2.transform(np.float64([[[0, 0], [39, 0], [0, 23], [39, 23]]]), affine)[0]
     assert corners.min() >= 0 and corners.max() <= 47
+    assert canvas.min() >= 1  # the canvas around the image mirrors it: no black corners
 
 
 @pytest.mark.parametrize(
@@ -89,18 +91,21 @@ def test_in_plane_rotation_reads_the_angle_that_turning_back_undoes(angle):
 
 class _PlacedPoints(Detector):
     """A Detector whose network returns fixed points of the (canvas) image it is given, best
-    first, with descriptors that number them; it records the shape it saw."""
+    first, with descriptors that number them, at most ``top_n``; it records the shape it saw."""
 
     def __init__(self, points, max_side=0):
         self.points = np.float32(points)
         self.max_side = max_side
         self.top_n = None
+        self.upsample = 1
 
     def _call(self, padded, sizes, top_n):
         self.shape = tuple(sizes[0])
+        top_n = self.top_n if top_n is None else top_n
         n = len(self.points)
         scores = np.linspace(1, 0.5, n, dtype=np.float32)
-        return [Features(self.points, scores, np.eye(n, dtype=np.float32))]
+        found = self.points, scores, np.eye(n, dtype=np.float32)
+        return [Features(*(array[:top_n] for array in found))]
 
 
 @pytest.mark.parametrize("max_side", [0, 100])
@@ -112,20 +117,29 @@ def test_turned_detections_come_back_in_the_images_pixels_without_the_canvas_edg
     inside = np.float64([[50, 30], [20, 10]])  # in the (shrunk) image's pixels
     on_canvas = cv2.transform(inside[None], affine)[0]
     edge = cv2.transform(np.float64([[[1, 1]]]), affine)[0]  # within EDGE_MARGIN of a corner
-    points = [on_canvas[0], [0, 0], edge[0], on_canvas[1]]  # [0, 0]: the empty canvas corner
+    # The best two lie off the image: [0, 0] in the mirrored canvas corner, then one within
+    # EDGE_MARGIN of the image's corner.
+    points = [[0, 0], edge[0], on_canvas[0], on_canvas[1]]
     detector = _PlacedPoints(points, max_side)
     found = turning.detect_turned(detector, image, 120.0)
     side = 8 * int(np.ceil(np.hypot(*small_shape) / 8))
     assert detector.shape == (side, side)
     np.testing.assert_allclose(found.keypoints, (inside + 0.5) * factor - 0.5, atol=1e-3)
-    np.testing.assert_array_equal(found.descriptors.argmax(axis=1), [0, 3])  # which points
-    assert turning.detect_turned(detector, image, 120.0, top_n=1).keypoints.shape == (1, 2)
+    np.testing.assert_array_equal(found.descriptors.argmax(axis=1), [2, 3])  # which points
+    # The cut to the best point counts only points of the image: the canvas gave them all.
+    best = turning.detect_turned(detector, image, 120.0, top_n=1)
+    np.testing.assert_array_equal(best.descriptors.argmax(axis=1), [2])
     detector.top_n = 1  # the detector's own cut applies when top_n is not given
-    assert turning.detect_turned(detector, image, 120.0).keypoints.shape == (1, 2)
+    np.testing.assert_array_equal(
+        turning.detect_turned(detector, image, 120.0).keypoints, best.keypoints
+    )
 
 
-def test_matching_across_any_rotation_recovers_a_photo_turned_past_the_upright_range(small_photo):
-    detector = Detector.pretrained(top_n=500)
+@pytest.mark.parametrize("upsample", [1, 2])
+def test_matching_across_any_rotation_recovers_a_photo_turned_past_the_upright_range(
+    small_photo, upsample
+):
+    detector = Detector.pretrained(top_n=500, upsample=upsample)
     turned, truth = _turned_by(small_photo, -150.0, 0.9)
     upright = detector.detect(small_photo), detector.detect(turned)
     plain = evaluation.corner_error(
