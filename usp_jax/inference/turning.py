@@ -113,23 +113,26 @@ def detect_turned(
     height, width = image.shape[:2]
     small, factors = detector.shrink(image)
     canvas, affine = turn(small, angle)
-    # Every point of the canvas, so that the cut below counts only points of the image itself
-    # (about half of a turned canvas is mirror image).
-    every_point = canvas.shape[0] * canvas.shape[1] * detector.upsample**2 // CELL**2
+    # Every point of the canvas (one per cell of the padded, enlarged canvas at most), so that the
+    # cut below counts only points of the image itself (about half of a turned canvas is mirror).
+    every_point = math.prod(math.ceil(side * detector.upsample / CELL) for side in canvas.shape[:2])
     features = detector.detect_as_is(canvas, every_point)
     back = cv2.transform(
         np.asarray(features.keypoints, np.float64).reshape(-1, 1, 2),
         cv2.invertAffineTransform(affine),
     ).reshape(-1, 2)
     back = (back + 0.5) * factors - 0.5
-    # Only a turn off the quarter turns puts the photo's edges against empty canvas.
-    margin = 0.0 if _quarter_turns(angle) is not None else EDGE_MARGIN
-    inside = (
-        (back[:, 0] >= margin)
-        & (back[:, 0] <= width - 1 - margin)
-        & (back[:, 1] >= margin)
-        & (back[:, 1] <= height - 1 - margin)
-    )
+    if _quarter_turns(angle) is not None:
+        # The turned copy is the image itself: every point is the image's, as detect() finds it
+        # (its last pixels' points lie up to half a pixel beyond W - 1 and H - 1).
+        inside = np.ones(len(back), bool)
+    else:
+        inside = (
+            (back[:, 0] >= EDGE_MARGIN)
+            & (back[:, 0] <= width - 1 - EDGE_MARGIN)
+            & (back[:, 1] >= EDGE_MARGIN)
+            & (back[:, 1] <= height - 1 - EDGE_MARGIN)
+        )
     top_n = detector.top_n if top_n is None else top_n
     keep = np.flatnonzero(inside)[:top_n]  # Scores come sorted, best first.
     return Features(
@@ -178,8 +181,8 @@ def detect_pair(
     Within ``UPRIGHT_BELOW`` degrees of a quarter turn image 2 is turned by the quarter turn
     alone (:func:`detectable_turn`), so below it image 2 is detected as it is. When the guide's
     homography rests on fewer than ``GUIDE_MIN_INLIERS`` inliers (a hard pair, where its angle can
-    be far off), image 2 is detected both ways and the way ``detector`` finds more RANSAC inliers with
-    is kept, so an unsure guide costs one more detection, not the pair."""
+    be far off), image 2 is detected both ways and the way ``detector`` finds more RANSAC inliers
+    with is kept, so an unsure guide costs one more detection, not the pair."""
     turn = estimate_turn(guide, image1, image2)
     angle = detectable_turn(turn.angle)
     features1 = detector.detect(image1, top_n)
