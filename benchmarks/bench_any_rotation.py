@@ -12,7 +12,10 @@ matching included:
 * ``rotation weights``: both images with the ``rotation`` weights alone, then
   ``match_and_estimate``;
 * ``upright, upsample 2`` and ``any rotation, upsample 2``: the first two with the default
-  weights run on 2x enlarged images (``Detector(upsample=2)``; the guide stays as it is).
+  weights run on 2x enlarged images (``Detector(upsample=2)``; the guide stays as it is);
+* ``unsure guide`` at both settings: what ``match_any_rotation`` costs on a pair whose guide
+  homography rests on too few inliers (chessboards, printed grids): the guide's detections,
+  then ``turning.search_turn`` (image 2 at 12 turns and once more at the angle they read).
 
 From the repository root::
 
@@ -27,7 +30,7 @@ import common
 import cv2
 import skimage.data
 
-from usp_jax.inference import Detector, match_and_estimate, match_any_rotation
+from usp_jax.inference import Detector, match_and_estimate, match_any_rotation, turning
 
 
 def main() -> None:
@@ -46,12 +49,23 @@ def main() -> None:
     def plain(detector):
         return lambda: match_and_estimate(detector.detect(photo), detector.detect(turned))
 
+    def unsure(detector):
+        def run():
+            turning.estimate_turn(guide, photo, turned)
+            features1 = detector.detect(photo)
+            searched, _ = turning.search_turn(detector, features1, photo.shape[:2], turned)
+            return match_and_estimate(features1, searched)
+
+        return run
+
     runs = {
         "upright": plain(upright),
         "any rotation": lambda: match_any_rotation(upright, photo, turned, guide),
         "rotation weights": plain(guide),
         "upright, upsample 2": plain(enlarged),
         "any rotation, upsample 2": lambda: match_any_rotation(enlarged, photo, turned, guide),
+        "unsure guide": unsure(upright),
+        "unsure guide, upsample 2": unsure(enlarged),
     }
     times = common.interleaved(runs, args.rounds, args.block)
     print(f"one {height}x{width} pair, 300 points per image, median of {args.rounds * args.block}:")

@@ -18,6 +18,13 @@ table and the intervals as the method ``UnsuperPoint [FOLDER]``, FOLDER its file
 
     python3 experiments/compare.py experiments/results/heldout_240x320.json \
         --against experiments/results/fast-v3/heldout_240x320.json --intervals
+
+``--versus-baselines`` prints, over the viewpoint pairs, the ``--against`` model's HA and MS
+minus each other method's of the first file (the baselines), with 95% paired-bootstrap
+intervals; each ``--pool RESULTS AGAINST`` adds one more draw of pairs (another
+``usp-jax make-pairs --seed``) to that comparison:
+
+    python3 experiments/compare.py A.json --against B.json --versus-baselines --pool A2.json B2.json
 """
 
 from __future__ import annotations
@@ -52,13 +59,29 @@ def main() -> None:
         action="store_true",
         help="every method's mean with its 95%% bootstrap interval over the pairs",
     )
+    parser.add_argument(
+        "--versus-baselines",
+        action="store_true",
+        help="the --against model against each other method of RESULTS on the viewpoint pairs",
+    )
+    parser.add_argument(
+        "--pool",
+        nargs=2,
+        action="append",
+        default=[],
+        metavar=("RESULTS", "AGAINST"),
+        help="with --versus-baselines: one more draw of pairs, pooled with the first",
+    )
     parser.add_argument("--rounds", type=int, default=2000, help="bootstrap resamples")
     args = parser.parse_args()
+    if (args.versus_baselines or args.pool) and not args.against:
+        parser.error("--versus-baselines and --pool compare the --against model: give --against")
+    if args.pool and not args.versus_baselines:
+        parser.error("--pool pools draws for --versus-baselines: give --versus-baselines")
     try:
-        rows = json.loads(pathlib.Path(args.results).read_text())["pairs"]
-        new_rows = (
-            json.loads(pathlib.Path(args.against).read_text())["pairs"] if args.against else None
-        )
+        rows = read_pairs(args.results)
+        new_rows = read_pairs(args.against) if args.against else None
+        pooled = [(read_pairs(a), read_pairs(b)) for a, b in args.pool]
     except (OSError, ValueError, KeyError) as error:
         parser.error(f"cannot read the evaluation JSON: {error}")
     print(markdown_by_view(by_view(rows)))
@@ -86,6 +109,45 @@ def main() -> None:
                 f"  {metric:4s} {change:+6.1f}%  [{low:+.1f}, {high:+.1f}]"
                 f"   difference {difference:+.3f}  [{d_low:+.3f}, {d_high:+.3f}]"
             )
+    if args.versus_baselines:
+        print("\n" + versus_baselines([(rows, new_rows), *pooled], args.rounds))
+
+
+def read_pairs(path: str) -> list[dict]:
+    """The per-pair rows of a ``usp-jax evaluate --json`` file."""
+    return json.loads(pathlib.Path(path).read_text())["pairs"]
+
+
+def versus_baselines(draws: list[tuple[list[dict], list[dict]]], rounds: int) -> str:
+    """A markdown table: over the viewpoint pairs of every draw (rows, new rows) pooled, the new
+    rows' model's HA at eps 1/3/5 and MS minus each other method's in the first rows, with the
+    95% paired-bootstrap interval (``statistics.paired_difference``)."""
+    model, others = [], []
+    for index, (rows, new_rows) in enumerate(draws):
+        # Scene names repeat across draws of the same photos; the draw keeps the pairs apart.
+        def tagged(chosen, index=index):
+            return [{**r, "scene": f"{index}/{r['scene']}"} for r in chosen if r["split"] == "v"]
+
+        model += tagged(r for r in new_rows if r["method"] == MODEL)
+        others += tagged(r for r in rows if r["method"] != MODEL)
+    shown = ("ha1", "ha3", "ha5", "ms")
+    lines = [
+        f"{MODEL} of the --against file(s) minus each method, {len(model)} viewpoint pairs"
+        f" of {len(draws)} draw(s) (difference [95% paired-bootstrap interval]):",
+        "| method | " + " | ".join(shown) + " |",
+        "|---" * (len(shown) + 1) + "|",
+    ]
+    for name in dict.fromkeys(r["method"] for r in others):
+        # paired_difference compares the model's rows of two evaluations: the baseline's rows
+        # stand in as the "base" evaluation's model.
+        base = [{**r, "method": MODEL} for r in others if r["method"] == name]
+        differences = paired_difference(base, model, rounds)
+        cells = [
+            f"{difference:+.3f} [{low:+.3f}, {high:+.3f}]"
+            for difference, (low, high) in (differences[m] for m in shown)
+        ]
+        lines.append(f"| {name} | " + " | ".join(cells) + " |")
+    return "\n".join(lines)
 
 
 def labelled(rows: list[dict], label: str) -> list[dict]:

@@ -478,6 +478,43 @@ def test_compare_intervals_add_the_second_files_model_as_its_own_row(tmp_path):
     assert "ms    +80.0%" in run.stdout and "difference +0.400" in run.stdout
 
 
+def test_compare_versus_baselines_pools_draws_of_the_same_scenes_pair_by_pair(tmp_path):
+    # Two draws of the same four scenes: ORB fails every pair of the first and none of the
+    # second, the --against model none of either, so over the 8 pooled pairs its HA@3 is 0.5 above ORB's.
+    # Illumination rows stay out of the comparison.
+    def draw(orb_error):
+        base = [_pair_row("ORB", "v", 2, orb_error, scene=f"v_{i}") for i in range(4)]
+        base += [_pair_row("ORB", "i", 2, 9.0, scene="i_0")]
+        # The first file's own model (an older one) is not a baseline.
+        base += [_pair_row("UnsuperPoint", r["split"], 2, 9.0, scene=r["scene"]) for r in base]
+        new = [_pair_row("UnsuperPoint", "v", 2, 1.0, scene=f"v_{i}", ms=0.7) for i in range(4)]
+        return base, new + [_pair_row("UnsuperPoint", "i", 2, 1.0, scene="i_0")]
+
+    paths = []
+    for index, orb_error in enumerate((9.0, 1.0)):
+        for name, rows in zip(("base", "new"), draw(orb_error)):
+            paths.append(tmp_path / f"{name}{index}.json")
+            paths[-1].write_text(json.dumps({"pairs": rows}))
+    command = [sys.executable, str(EXPERIMENTS / "compare.py"), str(paths[0])]
+    run = subprocess.run(
+        command
+        + ["--against", str(paths[1]), "--versus-baselines", "--rounds", "50"]
+        + ["--pool", str(paths[2]), str(paths[3])],
+        capture_output=True,
+        text=True,
+        check=True,
+    )
+    assert "8 viewpoint pairs of 2 draw(s)" in run.stdout
+    table = run.stdout.split("viewpoint pairs of 2 draw(s)")[1]
+    row = next(line for line in table.splitlines() if line.startswith("| ORB |"))
+    ha1, ha3, ha5, ms = row.split(" | ")[1:]
+    assert ha3.startswith("+0.500 [") and ms.startswith("+0.200 [+0.200, +0.200]")
+    refused = subprocess.run(
+        command + ["--pool", str(paths[2]), str(paths[3])], capture_output=True, text=True
+    )
+    assert refused.returncode == 2 and "give --against" in refused.stderr
+
+
 def test_compare_prints_the_rotation_table_of_every_method_in_30_degree_ranges_up_to_180(tmp_path):
     import cv2
 

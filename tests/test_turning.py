@@ -164,11 +164,11 @@ def test_a_pair_turned_within_the_upright_range_is_detected_as_it_is(small_photo
 
 
 @pytest.mark.parametrize("inliers, expected_angle", [(5, 0.0), (50, 90.0)])
-def test_an_unsure_guide_costs_a_detection_not_the_pair(
+def test_an_unsure_guide_costs_detections_not_the_pair(
     small_photo, monkeypatch, inliers, expected_angle
 ):
-    # An upright pair and a guide claiming a quarter turn: trusted with many inliers, checked
-    # against the upright detection with few (which then wins: it matches the pair).
+    # An upright pair and a guide claiming a quarter turn: trusted with many inliers, searched
+    # past with few (the upright detection then wins: it matches the pair).
     monkeypatch.setattr(turning, "estimate_turn", lambda *_: turning.Turn(90.0, inliers))
     detector = Detector.pretrained(top_n=500)
     shifted = np.roll(small_photo, 3, axis=1)
@@ -176,6 +176,38 @@ def test_an_unsure_guide_costs_a_detection_not_the_pair(
     assert angle == expected_angle
     if expected_angle == 0.0:
         np.testing.assert_array_equal(features2.keypoints, detector.detect(shifted).keypoints)
+
+
+def test_the_search_finds_an_angle_between_its_turns_that_a_wrong_guide_missed(
+    small_photo, monkeypatch
+):
+    # Turned back by -100 degrees, 10 from the nearest searched turn (every 30 degrees: -90,
+    # -120); the guide says -40 on 6 inliers, as it does on chessboards. The best searched turn's
+    # homography reads the angle and a last detection there registers the pair.
+    monkeypatch.setattr(turning, "estimate_turn", lambda *_: turning.Turn(-40.0, 6))
+    detector = Detector.pretrained(top_n=500)
+    turned, truth = _turned_by(small_photo, 100.0)
+    found = turning.match_any_rotation(detector, small_photo, turned, guide=detector)
+    assert found.angle == pytest.approx(-100.0, abs=2)
+    assert found.angle not in (-90.0, -120.0)  # refined past the searched turns
+    assert evaluation.corner_error(truth, found.matching.homography, (256, 256)) < 3
+
+
+def test_the_search_detects_each_turn_once(small_photo, monkeypatch):
+    seen = []
+    detect_turned = turning.detect_turned
+
+    def counted(detector, image, angle, top_n=None):
+        seen.append(angle)
+        return detect_turned(detector, image, angle, top_n)
+
+    monkeypatch.setattr(turning, "detect_turned", counted)
+    detector = Detector.pretrained(top_n=300)
+    features1 = detector.detect(small_photo)
+    # A guess of -178 snaps to -180, the same turn as the searched 180.
+    turning.search_turn(detector, features1, (256, 256), small_photo, guess=-178.0)
+    assert len(seen) == len(set(seen)) == 11  # 12 turns every 30 degrees, 0 not turned
+    assert 180.0 in seen and -180.0 not in seen
 
 
 def test_a_guide_near_a_quarter_turn_turns_image_2_by_the_quarter_turn_alone(

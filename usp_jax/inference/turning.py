@@ -5,9 +5,10 @@ rotation-invariant weights (``Detector.pretrained("rotation")``) match at any an
 less distinctively. Together they do better than either: the rotation-invariant network (the
 *guide*) estimates how far image 2 is turned from image 1, image 2 is turned back by that angle,
 and the upright network matches the pair (experiments/RESULTS.md, "Any rotation": on rotated
-viewpoint pairs MS 0.246 -> 0.513 and HA@3 0.31 -> 0.775, and with ``upsample=2`` an MS above
+viewpoint pairs MS 0.246 -> 0.517 and HA@3 0.31 -> 0.800, and with ``upsample=2`` an MS above
 ORB's, AKAZE's, BRISK's and SIFT's at every angle, at the cost of two guide detections and one
-detection on a larger canvas).
+detection on a larger canvas). Where the guide cannot read the angle (repetitive patterns,
+little texture) the upright network searches for it (:func:`search_turn`).
 
 Angles are degrees, positive = counter-clockwise on screen (``cv2.getRotationMatrix2D``'s
 sense); :func:`in_plane_rotation` reads the opposite, clockwise, sense from a homography, so
@@ -40,6 +41,9 @@ GUIDE_POINTS = 300
 #: and a handful more agree by chance on hard pairs (wrong angles came with 6-7 inliers on the
 #: held-out rotated pairs; right ones with a median of 48).
 GUIDE_MIN_INLIERS = 10
+#: Degrees between the turns an unsure guide's pair is searched at with the upright weights:
+#: every angle then lies within 15 degrees of one of them, inside the range they match over.
+SEARCH_STEP = 30.0
 
 
 def in_plane_rotation(homography: np.ndarray, shape: tuple[int, int]) -> float:
@@ -167,6 +171,54 @@ def estimate_turn(guide: Detector, image1: np.ndarray, image2: np.ndarray) -> Tu
     )
 
 
+def _detect_at(detector: Detector, image: np.ndarray, angle: float, top_n: int | None) -> Features:
+    """``image``'s features turned by ``angle`` (0: as it is), in its own pixels."""
+    return (
+        detector.detect(image, top_n)
+        if angle == 0
+        else detect_turned(detector, image, angle, top_n)
+    )
+
+
+def search_turn(
+    detector: Detector,
+    features1: Features,
+    shape1: tuple[int, int],
+    image2: np.ndarray,
+    guess: float = 0.0,
+    top_n: int | None = None,
+) -> tuple[Features, float]:
+    """``image2``'s features turned back by the angle at which ``detector`` (upright weights)
+    matches it to ``features1`` (image 1's, of size ``shape1`` (H, W)) best, and that angle: for a pair the guide cannot
+    read. Image 2 is detected at ``guess`` and every ``SEARCH_STEP`` degrees; the turn with the
+    most RANSAC inliers is within the upright weights' range of the truth, and the homography
+    it finds reads the angle precisely (:func:`in_plane_rotation`), so image 2 is detected once
+    more at that angle and the better of the two (by inliers) is kept. Costs up to
+    ``360 / SEARCH_STEP + 2`` detections of image 2."""
+    turns = [guess] + list(np.arange(-180.0 + SEARCH_STEP, 180.0 + SEARCH_STEP / 2, SEARCH_STEP))
+    tried: dict[float, tuple[Features, Matching]] = {}
+
+    def attempt(angle: float) -> float:
+        angle = detectable_turn(float(angle))
+        angle = angle + 360.0 if angle <= -180.0 else angle  # -180 and 180 are one turn
+        if angle not in tried:
+            features = _detect_at(detector, image2, angle, top_n)
+            tried[angle] = features, _matched(features1, features)
+        return angle
+
+    for angle in turns:
+        attempt(angle)
+    best = max(tried, key=lambda angle: tried[angle][1].inliers.sum())
+    homography = tried[best][1].homography
+    if homography is not None:
+        # The homography maps image 1 to image 2 in image 2's own pixels (the points were mapped
+        # back), so it holds the whole turn, not only what is left after turning by ``best``.
+        refined = attempt(in_plane_rotation(homography, shape1))
+        if tried[refined][1].inliers.sum() >= tried[best][1].inliers.sum():
+            best = refined
+    return tried[best][0], best
+
+
 def detect_pair(
     detector: Detector,
     guide: Detector,
@@ -181,20 +233,18 @@ def detect_pair(
     Within ``UPRIGHT_BELOW`` degrees of a quarter turn image 2 is turned by the quarter turn
     alone (:func:`detectable_turn`), so below it image 2 is detected as it is. When the guide's
     homography rests on fewer than ``GUIDE_MIN_INLIERS`` inliers (a hard pair, where its angle can
-    be far off), image 2 is detected both ways and the way ``detector`` finds more RANSAC inliers
-    with is kept, so an unsure guide costs one more detection, not the pair."""
+    be far off: repetitive patterns such as chessboards and printed grids, or little texture),
+    the angle is searched for with ``detector`` itself (:func:`search_turn`), so an unsure guide
+    costs more detections, not the pair."""
     turn = estimate_turn(guide, image1, image2)
-    angle = detectable_turn(turn.angle)
     features1 = detector.detect(image1, top_n)
-    if angle == 0:
-        return features1, detector.detect(image2, top_n), 0.0
-    turned = detect_turned(detector, image2, angle, top_n)
-    if turn.inliers >= GUIDE_MIN_INLIERS:
-        return features1, turned, angle
-    upright = detector.detect(image2, top_n)
-    if _matched(features1, upright).inliers.sum() >= _matched(features1, turned).inliers.sum():
-        return features1, upright, 0.0
-    return features1, turned, angle
+    if turn.inliers < GUIDE_MIN_INLIERS:
+        return (
+            features1,
+            *search_turn(detector, features1, image1.shape[:2], image2, turn.angle, top_n),
+        )
+    angle = detectable_turn(turn.angle)
+    return features1, _detect_at(detector, image2, angle, top_n), angle
 
 
 class TurnedMatching(NamedTuple):
