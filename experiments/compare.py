@@ -110,7 +110,11 @@ def main() -> None:
                 f"   difference {difference:+.3f}  [{d_low:+.3f}, {d_high:+.3f}]"
             )
     if args.versus_baselines:
-        print("\n" + versus_baselines([(rows, new_rows), *pooled], args.rounds))
+        try:
+            table = versus_baselines([(rows, new_rows), *pooled], args.rounds)
+        except ValueError as error:
+            parser.error(f"--versus-baselines: a draw's two files differ in their pairs: {error}")
+        print("\n" + table)
 
 
 def read_pairs(path: str) -> list[dict]:
@@ -124,12 +128,8 @@ def versus_baselines(draws: list[tuple[list[dict], list[dict]]], rounds: int) ->
     95% paired-bootstrap interval (``statistics.paired_difference``)."""
     model, others = [], []
     for index, (rows, new_rows) in enumerate(draws):
-        # Scene names repeat across draws of the same photos; the draw keeps the pairs apart.
-        def tagged(chosen, index=index):
-            return [{**r, "scene": f"{index}/{r['scene']}"} for r in chosen if r["split"] == "v"]
-
-        model += tagged(r for r in new_rows if r["method"] == MODEL)
-        others += tagged(r for r in rows if r["method"] != MODEL)
+        model += _viewpoint_rows(new_rows, index, lambda method: method == MODEL)
+        others += _viewpoint_rows(rows, index, lambda method: method != MODEL)
     shown = ("ha1", "ha3", "ha5", "ms")
     lines = [
         f"{MODEL} of the --against file(s) minus each method, {len(model)} viewpoint pairs"
@@ -148,6 +148,16 @@ def versus_baselines(draws: list[tuple[list[dict], list[dict]]], rounds: int) ->
         ]
         lines.append(f"| {name} | " + " | ".join(cells) + " |")
     return "\n".join(lines)
+
+
+def _viewpoint_rows(rows: list[dict], draw: int, keep) -> list[dict]:
+    """The viewpoint rows of the methods ``keep(method)`` accepts, scenes prefixed by the draw:
+    scene names repeat across draws of the same photos, and the draw keeps the pairs apart."""
+    return [
+        {**r, "scene": f"{draw}/{r['scene']}"}
+        for r in rows
+        if r["split"] == "v" and keep(r["method"])
+    ]
 
 
 def labelled(rows: list[dict], label: str) -> list[dict]:

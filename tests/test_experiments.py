@@ -480,8 +480,8 @@ def test_compare_intervals_add_the_second_files_model_as_its_own_row(tmp_path):
 
 def test_compare_versus_baselines_pools_draws_of_the_same_scenes_pair_by_pair(tmp_path):
     # Two draws of the same four scenes: ORB fails every pair of the first and none of the
-    # second, the --against model none of either, so over the 8 pooled pairs its HA@3 is 0.5 above ORB's.
-    # Illumination rows stay out of the comparison.
+    # second, the --against model none of either, so over the 8 pooled pairs its HA@3 is 0.5
+    # above ORB's. Illumination rows stay out of the comparison.
     def draw(orb_error):
         base = [_pair_row("ORB", "v", 2, orb_error, scene=f"v_{i}") for i in range(4)]
         base += [_pair_row("ORB", "i", 2, 9.0, scene="i_0")]
@@ -513,6 +513,18 @@ def test_compare_versus_baselines_pools_draws_of_the_same_scenes_pair_by_pair(tm
         command + ["--pool", str(paths[2]), str(paths[3])], capture_output=True, text=True
     )
     assert refused.returncode == 2 and "give --against" in refused.stderr
+    # A pooled draw whose two files hold different pairs: one line, no traceback.
+    other = tmp_path / "other.json"
+    other.write_text(json.dumps({"pairs": [_pair_row("UnsuperPoint", "v", 2, 1.0, scene="v_9")]}))
+    mismatched = subprocess.run(
+        command
+        + ["--against", str(paths[1]), "--versus-baselines"]
+        + ["--pool", str(paths[2]), str(other)],
+        capture_output=True,
+        text=True,
+    )
+    assert mismatched.returncode == 2 and "Traceback" not in mismatched.stderr
+    assert "a draw's two files differ in their pairs" in mismatched.stderr
 
 
 def test_compare_prints_the_rotation_table_of_every_method_in_30_degree_ranges_up_to_180(tmp_path):

@@ -189,12 +189,12 @@ def search_turn(
     top_n: int | None = None,
 ) -> tuple[Features, float]:
     """``image2``'s features turned back by the angle at which ``detector`` (upright weights)
-    matches it to ``features1`` (image 1's, of size ``shape1`` (H, W)) best, and that angle: for a pair the guide cannot
-    read. Image 2 is detected at ``guess`` and every ``SEARCH_STEP`` degrees; the turn with the
-    most RANSAC inliers is within the upright weights' range of the truth, and the homography
-    it finds reads the angle precisely (:func:`in_plane_rotation`), so image 2 is detected once
-    more at that angle and the better of the two (by inliers) is kept. Costs up to
-    ``360 / SEARCH_STEP + 2`` detections of image 2."""
+    matches it best to ``features1`` (image 1's, of size ``shape1`` (H, W)), and that angle: for a
+    pair the guide cannot read. Image 2 is detected at ``guess`` and every ``SEARCH_STEP``
+    degrees; the turn with the most RANSAC inliers is within the upright weights' range of the
+    truth, and the homography it finds reads the angle precisely (:func:`in_plane_rotation`), so
+    image 2 is detected once more at that angle and the better of the two (by inliers) is kept.
+    Costs up to ``360 / SEARCH_STEP + 2`` detections of image 2."""
     turns = [guess] + list(np.arange(-180.0 + SEARCH_STEP, 180.0 + SEARCH_STEP / 2, SEARCH_STEP))
     tried: dict[float, tuple[Features, Matching]] = {}
 
