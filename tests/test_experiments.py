@@ -405,9 +405,10 @@ def test_inlier_residuals_measure_the_ransac_inliers_against_the_true_homography
     assert row["over_2px"] == pytest.approx(1 / 3)
     # The three inliers' triangle (shoelace): |40 * 50 - 20 * 10| / 2 = 900 px of 100 x 200.
     assert row["coverage"] == pytest.approx(900 / 20000)
+    assert (row["offset_x"], row["offset_y"]) == pytest.approx((0.0, 1.0))  # the 3 px, over 3
     none = evaluation.Matching(np.zeros((0, 2), np.int64), np.zeros(0, bool), None)
     empty = analysis.inlier_residuals(points, second, none, shift, (100, 200))
-    assert np.isnan(empty["rms"]) and empty["coverage"] == 0
+    assert np.isnan(empty["rms"]) and np.isnan(empty["offset_x"]) and empty["coverage"] == 0
 
 
 def test_the_fast_recipe_trains_the_fast_network_in_the_paper_networks_two_crop_regimes():

@@ -130,33 +130,46 @@ def inlier_residuals(
     homography: np.ndarray,
     shape1: tuple[int, int],
 ) -> dict[str, float]:
-    """``{"inliers", "rms", "over_2px", "coverage"}`` of one pair's RANSAC inliers: their count,
-    the RMS and share above 2 px of ``|H p1 - p2|`` under the TRUE homography ``H`` (image 1 ->
-    2), and the area of their convex hull in image 1 over its area ``shape1`` (height, width).
+    """``{"inliers", "rms", "over_2px", "coverage", "offset_x", "offset_y"}`` of one pair's
+    RANSAC inliers: their count, the RMS and share above 2 px of ``|p2 - H p1|`` under the TRUE
+    homography ``H`` (image 1 -> 2), the area of their convex hull in image 1 over its area
+    ``shape1`` (height, width), and the mean of ``p2 - H p1`` in image 2's pixels (x, y): a
+    constant offset between the points and the truth, which cancels on upright pairs but not on
+    turned ones (``sequences.resize_pair``).
 
     keypoints1 [N1, 2], keypoints2 [N2, 2] (x, y); ``matching`` as ``match_and_estimate``
-    returns it for them. No inliers gives NaN for rms and over_2px, and coverage 0."""
+    returns it for them. No inliers gives NaN for rms, over_2px and the offsets, coverage 0."""
     pairs = matching.matches[matching.inliers]
     inliers1 = keypoints1[pairs[:, 0]]
-    errors = np.linalg.norm(
-        metrics.project_points(inliers1, homography) - keypoints2[pairs[:, 1]], axis=1
-    )
+    residuals = keypoints2[pairs[:, 1]] - metrics.project_points(inliers1, homography)
+    errors = np.linalg.norm(residuals, axis=1)
     if not len(errors):
-        return {"inliers": 0.0, "rms": np.nan, "over_2px": np.nan, "coverage": 0.0}
+        return {
+            "inliers": 0.0,
+            "rms": np.nan,
+            "over_2px": np.nan,
+            "coverage": 0.0,
+            "offset_x": np.nan,
+            "offset_y": np.nan,
+        }
     hull = cv2.convexHull(np.asarray(inliers1, np.float32))
+    offset_x, offset_y = residuals.mean(axis=0)
     return {
         "inliers": float(len(errors)),
         "rms": float(np.sqrt(np.mean(errors**2))),
         "over_2px": float(np.mean(errors > 2)),
         "coverage": float(cv2.contourArea(hull)) / (shape1[0] * shape1[1]),
+        "offset_x": float(offset_x),
+        "offset_y": float(offset_y),
     }
 
 
 def inlier_residuals_by_view(
     methods: list[protocol.Method], root: str, height: int, width: int, top_k: int, nms: float
 ) -> dict[str, dict[int, dict[str, float]]]:
-    """``{method: {k: mean inliers, rms, over_2px and coverage, median corner_error}}`` over the
-    "v" pairs."""
+    """``{method: {k: mean inliers, rms, over_2px, coverage, offset_x and offset_y, median
+    corner_error}}`` over the "v" pairs. A method with ``detect_pair`` (matching across any
+    rotation) detects each pair through it, as the evaluation does."""
     rows: dict[tuple[str, int], list[dict]] = collections.defaultdict(list)
     for files in sequences.scan_sequences(root):
         if files.split != "v":
@@ -166,7 +179,7 @@ def inlier_residuals_by_view(
             pair.image1, pair.image2, pair.homography, height, width
         )
         for method in methods:
-            features1, features2 = (protocol.detect(method, im, nms) for im in (image1, image2))
+            features1, features2 = protocol.detect_both(method, image1, image2, nms)
             kept1, kept2, matching = metrics.homography_matching(
                 features1,
                 features2,
@@ -188,7 +201,7 @@ def inlier_residuals_by_view(
         table[name][k] = {
             **{
                 key: float(np.nanmean([r[key] for r in group]))
-                for key in ("inliers", "rms", "over_2px", "coverage")
+                for key in ("inliers", "rms", "over_2px", "coverage", "offset_x", "offset_y")
             },
             "corner_error": float(np.median([r["corner_error"] for r in group])),
         }

@@ -178,8 +178,12 @@ def resize_pair(
     ``sx = width / W``, ``sy = height / H`` of each image.
 
     Note that this scales coordinates about pixel (0, 0); ``cv2.resize`` scales about the
-    corner (-0.5, -0.5), so H' is off by ``0.5 * (s - 1)`` px. The protocol keeps that offset
-    (KP2D's numbers have it); it is well below the 3 px correct distance.
+    corner (-0.5, -0.5), so every point lands ``0.5 * (s - 1)`` px off where H' puts it (-0.25 px
+    at half size), in both images. The protocol keeps that offset (KP2D's numbers have it). On
+    upright pairs it nearly cancels; on a pair turned by an angle a it moves each method's
+    homography by ``(I - R(a)) @ (0.25, 0.25)``, up to 0.7 px at 180 degrees, except OpenCV
+    SIFT's, whose points carry an opposite +0.25 px offset of their own (experiments/RESULTS.md,
+    "Any rotation"). Pairs made at the evaluated size need no resizing and have no such offset.
 
     Returns the two resized uint8 images and H' (float64 [3, 3]).
     """
