@@ -15,8 +15,7 @@ matching included:
   weights run on 2x enlarged images (``Detector(upsample=2)``; the guide stays as it is);
 * ``unsure guide`` at both settings: what ``match_any_rotation`` costs on a pair whose guide
   homography rests on too few inliers (chessboards, printed grids): the guide's detections,
-  then ``turning.search_turn`` (image 2 at 12 turns and once more at the angle they read; with
-  upsample 2 the 12 turns run without enlarging, the last two enlarged).
+  then ``turning.search_turn`` (image 2 at 12 turns and once more at the angle they read).
 
 From the repository root::
 
@@ -54,7 +53,7 @@ def main() -> None:
         def run():
             turning.estimate_turn(guide, photo, turned)
             features1 = detector.detect(photo)
-            searched, _ = turning.search_turn(detector, photo, turned, features1)
+            searched, _ = turning.search_turn(detector, features1, photo.shape[:2], turned)
             return match_and_estimate(features1, searched)
 
         return run

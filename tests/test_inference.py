@@ -177,16 +177,6 @@ def test_upsample_with_nms_and_padding_keeps_points_inside_and_apart(variables, 
     assert_same_features(kept, evaluation.Features(*(a[expected] for a in candidates)))
 
 
-def test_native_is_the_same_detector_without_upsampling_built_once(variables, image):
-    plain = Detector(variables, SMALL_MODEL, top_n=7, border=3)
-    assert plain.native is plain
-    enlarged = Detector(variables, SMALL_MODEL, top_n=7, border=3, upsample=2)
-    native = enlarged.native
-    assert native is enlarged.native and native.upsample == 1
-    assert (native.top_n, native.border) == (7, 3.0)
-    assert_same_features(native.detect(image), plain.detect(image), atol=0)
-
-
 @pytest.mark.parametrize("upsample", [0, -2, 1.5, True])
 def test_upsample_must_be_a_positive_integer(variables, upsample):
     with pytest.raises(ValueError, match="upsample must be a positive integer"):

@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from usp_jax import evaluation
-from usp_jax.inference import Detector, Features, match_and_estimate, turning
+from usp_jax.inference import Detector, Features, turning
 
 
 @pytest.fixture(scope="module")
@@ -205,34 +205,9 @@ def test_the_search_detects_each_turn_once(small_photo, monkeypatch):
     detector = Detector.pretrained(top_n=300)
     features1 = detector.detect(small_photo)
     # A guess of -178 snaps to -180, the same turn as the searched 180.
-    turning.search_turn(detector, small_photo, small_photo, features1, guess=-178.0)
+    turning.search_turn(detector, features1, (256, 256), small_photo, guess=-178.0)
     assert len(seen) == len(set(seen)) == 11  # 12 turns every 30 degrees, 0 not turned
     assert 180.0 in seen and -180.0 not in seen
-
-
-def test_an_enlarging_detector_searches_at_native_size_and_enlarges_only_the_last_turns(
-    small_photo, monkeypatch
-):
-    seen = []
-    detect_at = turning._detect_at
-
-    def counted(detector, image, angle, top_n):
-        seen.append((detector.upsample, angle))
-        return detect_at(detector, image, angle, top_n)
-
-    monkeypatch.setattr(turning, "_detect_at", counted)
-    detector = Detector.pretrained(top_n=500, upsample=2)
-    turned, truth = _turned_by(small_photo, 100.0)
-    features2, angle = turning.search_turn(detector, small_photo, turned, guess=-40.0)
-    coarse = [turn for upsample, turn in seen if upsample == 1]
-    assert len(coarse) == 13  # the guess and 12 turns every 30 degrees
-    enlarged = [turn for upsample, turn in seen if upsample == 2]
-    assert len(enlarged) == 2 and enlarged[1] in (-90.0, -120.0)  # the read angle, the best turn
-    assert enlarged[0] == pytest.approx(-100.0, abs=2)
-    assert angle == enlarged[0]
-    features1 = detector.detect(small_photo)
-    homography = match_and_estimate(features1, features2).homography
-    assert evaluation.corner_error(truth, homography, (256, 256)) < 1.5
 
 
 def test_a_guide_near_a_quarter_turn_turns_image_2_by_the_quarter_turn_alone(

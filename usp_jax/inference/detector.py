@@ -268,23 +268,6 @@ class Detector:
                 )
             return cls.from_weights(path, **options)
 
-    @functools.cached_property
-    def native(self) -> Detector:
-        """This detector at ``upsample=1`` (itself when it is already): the same weights and
-        settings at a quarter of ``upsample=2``'s compute, for work that needs the network's
-        judgement but not the enlarged image's precision (``turning.search_turn``'s coarse
-        turns). Built once per detector, so its compiled functions are kept."""
-        if self.upsample == 1:
-            return self
-        return Detector(
-            self.variables,
-            self.model_config,
-            top_n=self.top_n,
-            nms_radius=self.nms_radius,
-            border=self.border,
-            max_side=self.max_side,
-        )
-
     def detect(self, image: np.ndarray, top_n: int | None = None) -> Features:
         """Keypoints of one uint8 [H, W, 3] RGB or [H, W] gray image, H, W >= 8.
 

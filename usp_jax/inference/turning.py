@@ -182,29 +182,23 @@ def _detect_at(detector: Detector, image: np.ndarray, angle: float, top_n: int |
 
 def search_turn(
     detector: Detector,
-    image1: np.ndarray,
+    features1: Features,
+    shape1: tuple[int, int],
     image2: np.ndarray,
-    features1: Features | None = None,
     guess: float = 0.0,
     top_n: int | None = None,
 ) -> tuple[Features, float]:
     """``image2``'s features turned back by the angle at which ``detector`` (upright weights)
-    matches it best to ``image1``, and that angle: for a pair the guide cannot read.
-    ``features1`` are ``detector``'s of ``image1`` (detected here when None).
+    matches it best to ``features1`` (image 1's, of size ``shape1`` (H, W)), and that angle: for a
+    pair the guide cannot read. Image 2 is detected at ``guess`` and every ``SEARCH_STEP``
+    degrees; the turn with the most RANSAC inliers is within the upright weights' range of the
+    truth, and the homography it finds reads the angle precisely (:func:`in_plane_rotation`), so
+    image 2 is detected once more at that angle and the better of the two (by inliers) is kept.
+    Costs up to ``360 / SEARCH_STEP + 2`` detections of image 2."""
+    turns = [guess] + list(np.arange(-180.0 + SEARCH_STEP, 180.0 + SEARCH_STEP / 2, SEARCH_STEP))
+    tried: dict[float, tuple[Features, Matching]] = {}
 
-    Image 2 is detected at ``guess`` and every ``SEARCH_STEP`` degrees; the turn with the most
-    RANSAC inliers is within the upright weights' range of the truth, and the homography it finds
-    reads the angle precisely (:func:`in_plane_rotation`), so image 2 is detected once more at
-    that angle and the better of the two (by inliers; the read angle on a tie) is kept. The
-    coarse turns only have to come close, so they run at ``detector.native`` (no upsampling:
-    a quarter of ``upsample=2``'s compute); the last two are detected at ``detector``'s own
-    setting. Costs up to ``360 / SEARCH_STEP + 1`` detections of image 2 at ``detector.native``
-    and two more at ``detector`` (one when it is native)."""
-    features1 = detector.detect(image1, top_n) if features1 is None else features1
-    coarse = detector.native
-    coarse1 = features1 if coarse is detector else coarse.detect(image1, top_n)
-
-    def attempt(detector, features1, tried, angle):
+    def attempt(angle: float) -> float:
         angle = detectable_turn(float(angle))
         angle = angle + 360.0 if angle <= -180.0 else angle  # -180 and 180 are one turn
         if angle not in tried:
@@ -212,24 +206,17 @@ def search_turn(
             tried[angle] = features, _matched(features1, features)
         return angle
 
-    def inliers(tried, angle):
-        return tried[angle][1].inliers.sum()
-
-    turns = [guess] + list(np.arange(-180.0 + SEARCH_STEP, 180.0 + SEARCH_STEP / 2, SEARCH_STEP))
-    searched: dict[float, tuple[Features, Matching]] = {}
     for angle in turns:
-        attempt(coarse, coarse1, searched, angle)
-    best = max(searched, key=lambda angle: inliers(searched, angle))
-    finalists = [best]
-    homography = searched[best][1].homography
+        attempt(angle)
+    best = max(tried, key=lambda angle: tried[angle][1].inliers.sum())
+    homography = tried[best][1].homography
     if homography is not None:
         # The homography maps image 1 to image 2 in image 2's own pixels (the points were mapped
         # back), so it holds the whole turn, not only what is left after turning by ``best``.
-        finalists.insert(0, in_plane_rotation(homography, image1.shape[:2]))
-    final = searched if coarse is detector else {}
-    kept = [attempt(detector, features1, final, angle) for angle in finalists]
-    best = max(kept, key=lambda angle: inliers(final, angle))  # The first (read) on a tie.
-    return final[best][0], best
+        refined = attempt(in_plane_rotation(homography, shape1))
+        if tried[refined][1].inliers.sum() >= tried[best][1].inliers.sum():
+            best = refined
+    return tried[best][0], best
 
 
 def detect_pair(
@@ -254,7 +241,7 @@ def detect_pair(
     if turn.inliers < GUIDE_MIN_INLIERS:
         return (
             features1,
-            *search_turn(detector, image1, image2, features1, turn.angle, top_n),
+            *search_turn(detector, features1, image1.shape[:2], image2, turn.angle, top_n),
         )
     angle = detectable_turn(turn.angle)
     return features1, _detect_at(detector, image2, angle, top_n), angle
