@@ -7,6 +7,7 @@ import sys
 import tempfile
 
 import jax
+import numpy as np
 import pytest
 
 from usp_jax import config as config_lib
@@ -86,6 +87,14 @@ def compilation_cache_env() -> dict[str, str]:
 def child_env() -> dict[str, str]:
     """This process's environment plus the tests' compilation cache, for a child ``usp-jax``."""
     return {**os.environ, **compilation_cache_env()}
+
+
+def gaussian_blob(centre, shape: tuple[int, int], sigma: float) -> np.ndarray:
+    """uint8 [H, W, 3] image of one bright Gaussian blob centred at ``centre`` (x, y), in the
+    pixel-centre convention: a feature whose true position is known to a fraction of a pixel."""
+    yy, xx = np.mgrid[0 : shape[0], 0 : shape[1]].astype(np.float64)
+    blob = np.exp(-((xx - centre[0]) ** 2 + (yy - centre[1]) ** 2) / (2 * sigma**2))
+    return np.dstack([np.round(255 * blob).astype(np.uint8)] * 3)
 
 
 @pytest.fixture(scope="session")

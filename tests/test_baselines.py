@@ -4,6 +4,7 @@ import cv2
 import numpy as np
 import pytest
 import skimage.data
+from conftest import gaussian_blob
 
 from usp_jax.evaluation.baselines import available_baselines, opencv_method
 
@@ -68,19 +69,12 @@ def test_unknown_baseline_lists_the_valid_names():
         opencv_method("SURF", 300)
 
 
-def _blob(centre, shape=(120, 160), sigma=4.0):
-    """uint8 image of a bright Gaussian blob centred at ``centre`` (x, y), pixel-centre convention."""
-    yy, xx = np.mgrid[0 : shape[0], 0 : shape[1]].astype(np.float64)
-    blob = np.exp(-((xx - centre[0]) ** 2 + (yy - centre[1]) ** 2) / (2 * sigma**2))
-    return np.round(255 * blob).astype(np.uint8)
-
-
 @pytest.mark.parametrize("centre", [(60.0, 50.0), (80.3, 70.6)])
 def test_opencv_sift_places_a_blob_a_quarter_pixel_right_and_below_its_centre_akaze_at_it(centre):
     # OpenCV's SIFT detects on its input enlarged 2x and halves the coordinates without the
     # half-pixel shift of pixel centres: its points sit ~0.25 px right and below (RESULTS, "Any
     # rotation": on resized pairs this cancels the protocol's own -0.25 px, on native ones not).
-    image = np.dstack([_blob(centre)] * 3)
+    image = gaussian_blob(centre, (120, 160), sigma=4.0)
     found = {}
     for name in ("sift", "akaze"):
         features = opencv_method(name, 50).detect(image)

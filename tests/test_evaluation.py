@@ -10,6 +10,7 @@ import cv2
 import numpy as np
 import pytest
 import skimage.data
+from conftest import gaussian_blob
 
 from usp_jax import evaluation as ev
 from usp_jax.evaluation.baselines import opencv_method
@@ -192,10 +193,8 @@ def test_resize_pairs_homography_is_a_quarter_pixel_off_cv2_resize_at_half_size(
     # The protocol (KP2D) scales about pixel (0, 0); cv2.resize about the corner (-0.5, -0.5). At
     # half size a point lands 0.25 px up and left of where H' puts it, in both images: on rotated
     # pairs that no longer cancels (RESULTS, "Any rotation").
-    yy, xx = np.mgrid[0:480, 0:640].astype(np.float64)
     centre = np.array([301.0, 203.0])
-    blob = np.exp(-((xx - centre[0]) ** 2 + (yy - centre[1]) ** 2) / (2 * 6.0**2))
-    image = np.dstack([np.round(255 * blob).astype(np.uint8)] * 3)
+    image = gaussian_blob(centre, (480, 640), sigma=6.0)
     small, _, _ = ev.resize_pair(image, image, np.eye(3), 240, 320)
     weights = small[..., 0].astype(np.float64)
     ys, xs = np.mgrid[0:240, 0:320]
