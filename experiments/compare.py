@@ -19,6 +19,9 @@ table and the intervals as the method ``UnsuperPoint [FOLDER]``, FOLDER its file
     python3 experiments/compare.py experiments/results/heldout_240x320.json \
         --against experiments/results/fast-v3/heldout_240x320.json --intervals
 
+Files evaluated with different ``--ransac-orders`` are not compared: a share of RANSAC orders
+and the protocol's single estimate are different numbers.
+
 ``--versus-baselines`` prints, over the viewpoint pairs, the ``--against`` model's HA and MS
 minus each other method's of the first file (the baselines), with 95% paired-bootstrap
 intervals; each ``--pool RESULTS AGAINST`` adds one more draw of pairs (another
@@ -82,8 +85,14 @@ def main() -> None:
         rows = read_pairs(args.results)
         new_rows = read_pairs(args.against) if args.against else None
         pooled = [(read_pairs(a), read_pairs(b)) for a, b in args.pool]
+        files = [args.results, *([args.against] if args.against else []), *sum(args.pool, [])]
+        orders = {path: ransac_orders(path) for path in files}
     except (OSError, ValueError, KeyError) as error:
         parser.error(f"cannot read the evaluation JSON: {error}")
+    if len(set(orders.values())) > 1:
+        # A share of RANSAC orders and the protocol's single draw are not the same number.
+        listed = ", ".join(f"{path}: {count}" for path, count in orders.items())
+        parser.error(f"the files estimate HA over different numbers of RANSAC orders ({listed})")
     print(markdown_by_view(by_view(rows)))
     # The second file's model joins the first file's methods as one more, labelled, method.
     label = pathlib.Path(args.against).parent.name if args.against else ""
@@ -120,6 +129,13 @@ def main() -> None:
 def read_pairs(path: str) -> list[dict]:
     """The per-pair rows of a ``usp-jax evaluate --json`` file."""
     return json.loads(pathlib.Path(path).read_text())["pairs"]
+
+
+def ransac_orders(path: str) -> int:
+    """How many RANSAC orders a ``usp-jax evaluate --json`` file's HA is over (1: the protocol's
+    single estimate; files written before ``--ransac-orders`` existed are that)."""
+    config = json.loads(pathlib.Path(path).read_text()).get("config", {})
+    return int(config.get("ransac_orders", 1))
 
 
 def versus_baselines(draws: list[tuple[list[dict], list[dict]]], rounds: int) -> str:

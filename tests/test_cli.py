@@ -126,6 +126,18 @@ def test_make_pairs_rotation_flags_are_parsed_strictly(argv, message, capsys):
     assert message in capsys.readouterr().err.strip().splitlines()[-1]
 
 
+def test_evaluate_ransac_orders_reach_the_protocol_and_the_json(pairs_dir, tmp_path, capsys):
+    out = tmp_path / "r.json"
+    argv = ["evaluate", "--hpatches", str(pairs_dir), "--baselines-only", "--baselines", "orb"]
+    assert main([*argv, "--ransac-orders", "3", "--json", str(out), "--no-progress"]) == 0
+    assert "HA: share of 3 random orders" in capsys.readouterr().out
+    assert json.loads(out.read_text())["config"]["ransac_orders"] == 3
+    with pytest.raises(SystemExit) as exit_info:
+        main([*argv, "--ransac-orders", "0"])
+    assert exit_info.value.code == 2
+    assert "--ransac-orders" in capsys.readouterr().err
+
+
 def test_evaluate_baselines_prints_table_and_writes_json(pairs_dir, tmp_path, capsys):
     out = tmp_path / "r.json"
     assert (

@@ -163,6 +163,54 @@ def test_project_points_matches_cv2():
     assert ev.project_points(np.zeros((0, 2)), homography).shape == (0, 2)
 
 
+# --- RANSAC's draw: HA over orders of the matches --------------------------------------------
+
+VIEW = (240, 320)
+TILTED = np.array([[0.9, -0.3, 60.0], [0.25, 0.95, 10.0], [0.0008, 0.0004, 1.0]])
+
+
+def lottery_matches() -> tuple[np.ndarray, np.ndarray]:
+    """120 matches [120, 2] a pixel off (sigma 1) in the middle quarter of a 240x320 view, a
+    fifth of them wrong: RANSAC's corner error straddles 3 px, as on hard held-out pairs."""
+    rng = np.random.default_rng(0)
+    points1 = rng.uniform([80, 60], [240, 180], (120, 2))
+    points2 = ev.project_points(points1, TILTED) + rng.normal(0, 1.0, (120, 2))
+    points2[:24] = rng.uniform([0, 0], [320, 240], (24, 2))
+    return points1, points2
+
+
+def test_reordered_corner_errors_are_opencv_ransac_on_the_seeded_permutations():
+    points1, points2 = lottery_matches()
+    rng = np.random.default_rng(ev.metrics.ORDER_SEED)
+    expected = []
+    for _ in range(5):
+        order = rng.permutation(len(points1))
+        estimate, _ = cv2.findHomography(
+            points1[order], points2[order], cv2.RANSAC, 3.0, maxIters=5000
+        )
+        expected.append(ev.corner_error(TILTED, estimate, VIEW))
+    errors = ev.reordered_corner_errors(points1, points2, TILTED, VIEW, 5)
+    np.testing.assert_array_equal(errors, expected)
+    few = ev.reordered_corner_errors(points1[:3], points2[:3], TILTED, VIEW, 2)
+    assert np.all(np.isinf(few))  # under 4 matches: no estimate, wrong at every eps
+
+
+def test_ransac_estimate_depends_on_the_match_order_but_the_share_of_orders_does_not():
+    points1, points2 = lottery_matches()
+    rng = np.random.default_rng(1)
+    single = []
+    for _ in range(20):  # the protocol's one estimate, for 20 orders the matcher might return
+        order = rng.permutation(len(points1))
+        estimate, _ = ev.estimate_homography(points1[order], points2[order])
+        single.append(ev.corner_error(TILTED, estimate, VIEW) <= 3)
+    assert 0 < np.mean(single) < 1  # the same matches pass or fail by their order alone
+    share = np.mean(ev.reordered_corner_errors(points1, points2, TILTED, VIEW, 100) <= 3)
+    reversed_share = np.mean(
+        ev.reordered_corner_errors(points1[::-1], points2[::-1], TILTED, VIEW, 100) <= 3
+    )
+    assert 0.5 < share < 0.95 and abs(share - reversed_share) < 0.15
+
+
 def test_nms_radius_keeps_the_higher_score_greedily():
     # A (0.9) suppresses B (0.8, 3 px away) but not C (0.7, 6 px from A): greedy, not transitive.
     points = np.array([[10, 10], [13, 10], [16, 10], [40, 40]], dtype=np.float32)
@@ -406,6 +454,25 @@ def test_evaluate_scores_a_ground_truth_detector_perfectly(tiny_hpatches, nms):
     )
     for row in results.rows:
         assert row.rs == 1.0 and row.le < 1e-3 and row.ha1 == 1.0 and row.ms == 1.0, row
+
+
+def test_ransac_orders_score_ha_as_a_share_of_orders_and_keep_the_protocols_corner_error(
+    tiny_hpatches,
+):
+    sift = opencv_method("SIFT", 1200)
+    protocol = ev.evaluate([sift], tiny_hpatches, progress=False)
+    ordered = ev.evaluate([sift], tiny_hpatches, ransac_orders=8, progress=False)
+    for one, many in zip(protocol.rows, ordered.rows, strict=True):
+        assert many.corner_error == one.corner_error and many.ms == one.ms
+        assert all(float(8 * ha).is_integer() for ha in (many.ha1, many.ha3, many.ha5))
+    assert ev.to_json(ordered)["config"]["ransac_orders"] == 8
+    assert "HA: share of 8 random orders" in ev.format_table(ordered)
+    exact = ev.evaluate(
+        [gt_method(tiny_hpatches, 240, 320)], tiny_hpatches, ransac_orders=4, progress=False
+    )
+    assert all(row.ha1 == 1.0 for row in exact.rows)  # exact matches: every order finds H
+    with pytest.raises(ValueError, match="ransac_orders must be at least 1"):
+        ev.evaluate([sift], tiny_hpatches, ransac_orders=0, progress=False)
 
 
 def test_a_pair_method_is_given_both_images_and_its_output_is_checked(tiny_hpatches):

@@ -479,6 +479,22 @@ def test_compare_intervals_add_the_second_files_model_as_its_own_row(tmp_path):
     assert "ms    +80.0%" in run.stdout and "difference +0.400" in run.stdout
 
 
+def test_compare_refuses_files_whose_ha_is_over_different_ransac_orders(tmp_path):
+    rows = [_pair_row("UnsuperPoint", "v", 2, 1.0, scene="v_0")]
+    for name, orders in (("a.json", 1), ("b.json", 20)):
+        (tmp_path / name).write_text(
+            json.dumps({"config": {"ransac_orders": orders}, "pairs": rows})
+        )
+    run = subprocess.run(
+        [sys.executable, str(EXPERIMENTS / "compare.py"), str(tmp_path / "a.json")]
+        + ["--against", str(tmp_path / "b.json")],
+        capture_output=True,
+        text=True,
+    )
+    assert run.returncode == 2
+    assert "different numbers of RANSAC orders" in run.stderr and "b.json: 20" in run.stderr
+
+
 def test_compare_versus_baselines_pools_draws_of_the_same_scenes_pair_by_pair(tmp_path):
     # Two draws of the same four scenes: ORB fails every pair of the first and none of the
     # second, the --against model none of either, so over the 8 pooled pairs its HA@3 is 0.5

@@ -153,6 +153,7 @@ def cmd_evaluate(args) -> None:
         width=width,
         top_k=args.top,
         nms=args.nms,
+        ransac_orders=args.ransac_orders,
         progress=not args.no_progress,
     )
     enlarged = f", model on {args.upsample}x enlarged images" if args.upsample > 1 else ""

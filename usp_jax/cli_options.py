@@ -212,6 +212,14 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--nms", type=int, default=0, choices=(0, 4), help="NMS radius in px")
     p.add_argument("--baselines", default="orb,sift,akaze,brisk")
     p.add_argument("--baselines-only", action="store_true", help="skip the learned model")
+    p.add_argument(
+        "--ransac-orders",
+        type=_positive,
+        default=1,
+        metavar="N",
+        help="HA of a pair as the share of N random orders of its matches whose RANSAC estimate"
+        " is within eps, every method alike (default 1: the protocol's single estimate)",
+    )
     p.add_argument("--json", help="write aggregate and per-pair numbers here")
     p.add_argument("--plots", help="folder for keypoint and match PNGs")
     p.add_argument("--no-progress", action="store_true")

@@ -13,6 +13,7 @@ from usp_jax.evaluation.metrics import (
     image_corners,
     matching_score,
     project_points,
+    reordered_corner_errors,
     repeatability,
     shared_top_k,
     shared_view_mask,
@@ -50,6 +51,7 @@ from usp_jax.inference.matching import (
     RANSAC_MAX_ITERS,
     RANSAC_THRESHOLD,
     Matching,
+    estimate_homography,
     match_and_estimate,
 )
 
@@ -73,6 +75,7 @@ __all__ = [
     "corner_error",
     "detect",
     "detect_both",
+    "estimate_homography",
     "evaluate",
     "evaluate_pair",
     "format_table",
@@ -86,6 +89,7 @@ __all__ = [
     "project_points",
     "read_image",
     "read_pair",
+    "reordered_corner_errors",
     "repeatability",
     "resize_pair",
     "scan_sequences",

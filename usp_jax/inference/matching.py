@@ -44,26 +44,48 @@ def nearest_neighbours(
     return np.array([(m.queryIdx, m.trainIdx) for m in matches], dtype=np.int64).reshape(-1, 2)
 
 
+def estimate_homography(
+    points1: np.ndarray, points2: np.ndarray
+) -> tuple[np.ndarray | None, np.ndarray]:
+    """The protocol's RANSAC estimate from matched points ``[M, 2]`` (x, y), image 1 -> 2:
+    ``cv2.findHomography(points1, points2, cv2.RANSAC, 3, maxIters=5000)``. Returns (the float64
+    [3, 3] homography, or None when fewer than 4 points or OpenCV finds none; bool ``[M]`` inlier
+    mask, all False without a homography)."""
+    no_inliers = np.zeros(len(points1), dtype=bool)
+    if len(points1) < 4:
+        return None, no_inliers
+    estimate, mask = cv2.findHomography(
+        np.asarray(points1, np.float64),
+        np.asarray(points2, np.float64),
+        cv2.RANSAC,
+        RANSAC_THRESHOLD,
+        maxIters=RANSAC_MAX_ITERS,
+    )
+    if estimate is None or estimate.shape != (3, 3):
+        return None, no_inliers
+    return estimate, mask.ravel().astype(bool)
+
+
+def matched_points(
+    features1: Features, features2: Features, matches: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """The keypoints of ``matches`` (int ``[K, 2]``), float64 ``[K, 2]`` each."""
+    return (
+        np.asarray(features1.keypoints, np.float64).reshape(-1, 2)[matches[:, 0]],
+        np.asarray(features2.keypoints, np.float64).reshape(-1, 2)[matches[:, 1]],
+    )
+
+
 def match_and_estimate(
     features1: Features, features2: Features, norm: int = cv2.NORM_L2
 ) -> Matching:
     """The paper's homography estimation procedure: mutual nearest neighbours in descriptor
-    space (``cv2.BFMatcher(norm, crossCheck=True)``), then
-    ``cv2.findHomography(p1, p2, cv2.RANSAC, 3, maxIters=5000)``.
+    space (``cv2.BFMatcher(norm, crossCheck=True)``), then :func:`estimate_homography`.
 
     Fewer than 4 matches, or no homography from OpenCV, gives ``homography=None`` and no inliers.
     """
     matches = nearest_neighbours(
         features1.descriptors, features2.descriptors, norm, cross_check=True
     )
-    no_inliers = np.zeros(len(matches), dtype=bool)
-    if len(matches) < 4:
-        return Matching(matches, no_inliers, None)
-    points1 = np.asarray(features1.keypoints, np.float64)[matches[:, 0]]
-    points2 = np.asarray(features2.keypoints, np.float64)[matches[:, 1]]
-    estimate, mask = cv2.findHomography(
-        points1, points2, cv2.RANSAC, RANSAC_THRESHOLD, maxIters=RANSAC_MAX_ITERS
-    )
-    if estimate is None or estimate.shape != (3, 3):
-        return Matching(matches, no_inliers, None)
-    return Matching(matches, mask.ravel().astype(bool), estimate)
+    estimate, inliers = estimate_homography(*matched_points(features1, features2, matches))
+    return Matching(matches, inliers, estimate)
