@@ -81,18 +81,19 @@ def main() -> None:
         parser.error("--versus-baselines and --pool compare the --against model: give --against")
     if args.pool and not args.versus_baselines:
         parser.error("--pool pools draws for --versus-baselines: give --versus-baselines")
+    files = [args.results, *([args.against] if args.against else []), *sum(args.pool, [])]
     try:
-        rows = read_pairs(args.results)
-        new_rows = read_pairs(args.against) if args.against else None
-        pooled = [(read_pairs(a), read_pairs(b)) for a, b in args.pool]
-        files = [args.results, *([args.against] if args.against else []), *sum(args.pool, [])]
-        orders = {path: ransac_orders(path) for path in files}
+        evaluations = {path: read_evaluation(path) for path in files}
     except (OSError, ValueError, KeyError) as error:
         parser.error(f"cannot read the evaluation JSON: {error}")
+    orders = {path: count for path, (_, count) in evaluations.items()}
     if len(set(orders.values())) > 1:
         # A share of RANSAC orders and the protocol's single draw are not the same number.
         listed = ", ".join(f"{path}: {count}" for path, count in orders.items())
         parser.error(f"the files estimate HA over different numbers of RANSAC orders ({listed})")
+    rows = evaluations[args.results][0]
+    new_rows = evaluations[args.against][0] if args.against else None
+    pooled = [(evaluations[a][0], evaluations[b][0]) for a, b in args.pool]
     print(markdown_by_view(by_view(rows)))
     # The second file's model joins the first file's methods as one more, labelled, method.
     label = pathlib.Path(args.against).parent.name if args.against else ""
@@ -126,16 +127,12 @@ def main() -> None:
         print("\n" + table)
 
 
-def read_pairs(path: str) -> list[dict]:
-    """The per-pair rows of a ``usp-jax evaluate --json`` file."""
-    return json.loads(pathlib.Path(path).read_text())["pairs"]
-
-
-def ransac_orders(path: str) -> int:
-    """How many RANSAC orders a ``usp-jax evaluate --json`` file's HA is over (1: the protocol's
-    single estimate; files written before ``--ransac-orders`` existed are that)."""
-    config = json.loads(pathlib.Path(path).read_text()).get("config", {})
-    return int(config.get("ransac_orders", 1))
+def read_evaluation(path: str) -> tuple[list[dict], int]:
+    """The per-pair rows of a ``usp-jax evaluate --json`` file, and how many RANSAC orders its HA
+    is over (1: the protocol's single estimate; files written before ``--ransac-orders`` existed
+    are that)."""
+    evaluation = json.loads(pathlib.Path(path).read_text())
+    return evaluation["pairs"], int(evaluation.get("config", {}).get("ransac_orders", 1))
 
 
 def versus_baselines(draws: list[tuple[list[dict], list[dict]]], rounds: int) -> str:
