@@ -9,6 +9,7 @@ import pathlib
 import tempfile
 
 from usp_jax.inference.detector import MAX_SIDE
+from usp_jax.inference.weights import DEFAULT_PRETRAINED, PRETRAINED
 
 # The largest --upsample and --res side: beyond, the activations alone outgrow any memory.
 MAX_UPSAMPLE = 8
@@ -122,8 +123,8 @@ def _add_weights_name(parser) -> None:
     parser.add_argument(
         "--weights",
         metavar="NAME",
-        help="shipped weights by name (usp_jax.inference.PRETRAINED; an unknown"
-        " name lists them); default: the best on the held-out pairs",
+        help=f"shipped weights by name: {', '.join(PRETRAINED)} (default {DEFAULT_PRETRAINED},"
+        " the best on the held-out pairs; README's 'Which weights' table says which suits what)",
     )
 
 
@@ -148,8 +149,29 @@ def _add_max_side(parser, help: str) -> None:
     parser.add_argument("--max-side", type=_non_negative, default=MAX_SIDE, metavar="PX", help=help)
 
 
+class _HelpFormatter(argparse.HelpFormatter):
+    """argparse's help with every option's default shown: a help text that does not state its
+    default itself gets "(default: X)" appended (a flag's False and an unset None are no default)."""
+
+    def _get_help_string(self, action) -> str:
+        text = action.help or ""
+        default = action.default
+        if (
+            action.option_strings
+            and default not in (None, False, argparse.SUPPRESS)
+            and "default" not in text
+        ):
+            text += " (default: %(default)s)"
+        return text
+
+
 class _Parser(argparse.ArgumentParser):
-    """argparse with its errors in one line (the usage is one ``-h`` away), exit status 2."""
+    """argparse with its errors in one line (the usage is one ``-h`` away), exit status 2, and
+    every option's default in its help (:class:`_HelpFormatter`, subcommands' parsers too)."""
+
+    def __init__(self, *args, **kwargs):
+        kwargs.setdefault("formatter_class", _HelpFormatter)
+        super().__init__(*args, **kwargs)
 
     def error(self, message: str):
         text = " ".join(message.split())
@@ -225,7 +247,7 @@ def _add_train(subparsers) -> None:
         " change is logged to config_changes.jsonl); without it such a resume"
         " is refused, naming the keys",
     )
-    p.add_argument("--no-progress", action="store_true")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.add_argument(
         "overrides",
         nargs="*",
@@ -240,8 +262,10 @@ def _add_evaluate(subparsers) -> None:
     _add_checkpoint(p)
     p.add_argument("--hpatches", required=True, help="HPatches- or Oxford-layout folder")
     p.add_argument("--res", type=_resolution, default=(240, 320), help="HxW (default 240x320)")
-    p.add_argument("--top", type=_positive, default=300, help="points kept per image")
-    p.add_argument("--nms", type=int, default=0, choices=(0, 4), help="NMS radius in px")
+    p.add_argument("--top", type=_positive, default=300, help="points kept per image (default 300)")
+    p.add_argument(
+        "--nms", type=int, default=0, choices=(0, 4), help="NMS radius in px (default 0)"
+    )
     p.add_argument(
         "--baselines",
         default="orb,sift,akaze,brisk",
@@ -259,7 +283,7 @@ def _add_evaluate(subparsers) -> None:
     )
     p.add_argument("--json", help="write aggregate and per-pair numbers here")
     p.add_argument("--plots", help="folder for keypoint and match PNGs")
-    p.add_argument("--no-progress", action="store_true")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
     _add_upsample(p)
     _add_any_rotation(p)
 
@@ -267,11 +291,38 @@ def _add_evaluate(subparsers) -> None:
 def _add_make_pairs(subparsers) -> None:
     """The ``make-pairs`` subcommand: HPatches-layout pairs from a folder of photos."""
     p = subparsers.add_parser("make-pairs", help="HPatches-layout pairs from any folder of photos")
-    p.add_argument("--images", required=True)
-    p.add_argument("--out", required=True)
-    p.add_argument("--size", type=_resolution, default=(480, 640), help="HxW of generated images")
-    p.add_argument("--views", type=_positive, default=6)
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument(
+        "--images",
+        required=True,
+        metavar="DIR",
+        help="folder of photos; each gives a v_ (viewpoint) and an i_ (light) scene",
+    )
+    p.add_argument(
+        "--out",
+        required=True,
+        metavar="DIR",
+        help="folder for the v_*/i_* scenes (1.ppm ... N.ppm and the homographies H_1_k)",
+    )
+    p.add_argument(
+        "--size",
+        type=_resolution,
+        default=(480, 640),
+        metavar="HxW",
+        help="size of every generated image (default 480x640)",
+    )
+    p.add_argument(
+        "--views",
+        type=_positive,
+        default=6,
+        metavar="N",
+        help="images per scene, 2 to 6 (default 6, as HPatches)",
+    )
+    p.add_argument(
+        "--seed",
+        type=int,
+        default=0,
+        help="random seed, 0 to 2**32-1: the same seed and photos give the same pairs (default 0)",
+    )
     turn = p.add_mutually_exclusive_group()
     turn.add_argument(
         "--rotation",
@@ -294,32 +345,54 @@ def _add_make_pairs(subparsers) -> None:
         help="also zoom every viewpoint pair by a factor drawn log-uniformly from [MIN, MAX],"
         " e.g. 0.5,2 (image 2's content magnified about its centre)",
     )
-    p.add_argument("--no-progress", action="store_true")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
 
 
 def _add_benchmark(subparsers) -> None:
     """The ``benchmark`` subcommand: frames per second of the model and OpenCV."""
     p = subparsers.add_parser("benchmark", help="frames per second, model and OpenCV side by side")
     _add_checkpoint(p)
-    p.add_argument("--res", type=_resolution, nargs="+", default=[(240, 320), (480, 640)])
-    p.add_argument("--batch", type=_positive, nargs="+", default=[1, 10])
+    p.add_argument(
+        "--res",
+        type=_resolution,
+        nargs="+",
+        default=[(240, 320), (480, 640)],
+        metavar="HxW",
+        help="image sizes to time (default 240x320 480x640)",
+    )
+    p.add_argument(
+        "--batch",
+        type=_positive,
+        nargs="+",
+        default=[1, 10],
+        metavar="B",
+        help="batch sizes the model is timed at (default 1 10); OpenCV takes one image at a time",
+    )
     p.add_argument(
         "--top", type=_positive, help="points kept (default: 300 up to 240x320, else 1000)"
     )
-    p.add_argument("--repeats", type=_positive, default=10)
+    p.add_argument(
+        "--repeats",
+        type=_positive,
+        default=10,
+        metavar="N",
+        help="timed calls per row, after 2 warm-up calls; the median is reported (default 10)",
+    )
     p.add_argument(
         "--no-opencv", action="store_true", help="time the model only (no OpenCV, no XFeat)"
     )
-    p.add_argument("--json")
+    p.add_argument("--json", help="write the settings and every timed row as JSON here")
     _add_upsample(p)
 
 
 def _add_detect(subparsers) -> None:
     """The ``detect`` subcommand: the keypoints of one image."""
     p = subparsers.add_parser("detect", help="keypoints of one image")
-    p.add_argument("image")
+    p.add_argument("image", help="a photo in any format OpenCV reads")
     _add_checkpoint(p)
-    p.add_argument("--top", type=_positive, default=500)
+    p.add_argument(
+        "--top", type=_positive, default=500, help="most keypoints kept, best first (default 500)"
+    )
     # Spread points condition a homography or pose better: radius 4 cut the corner error of
     # the held-out viewpoint pairs by a third (experiments/RESULTS.md).
     _add_nms_radius(p, 0.0, "NMS radius in px, default 0 (try 4 for homography or pose estimation)")
@@ -336,10 +409,15 @@ def _add_detect(subparsers) -> None:
 def _add_match(subparsers) -> None:
     """The ``match`` subcommand: matches and a RANSAC homography between two images."""
     p = subparsers.add_parser("match", help="matches and a RANSAC homography between two images")
-    p.add_argument("image1")
-    p.add_argument("image2")
+    p.add_argument("image1", help="the first photo (any format OpenCV reads)")
+    p.add_argument("image2", help="the second photo; H maps image 1's pixels to image 2's")
     _add_checkpoint(p)
-    p.add_argument("--top", type=_positive, default=1000)
+    p.add_argument(
+        "--top",
+        type=_positive,
+        default=1000,
+        help="most keypoints kept per image (default 1000: more than detect's 500, for RANSAC)",
+    )
     _add_nms_radius(
         p, 4.0, "NMS radius in px, default 4 (spread points condition a homography better)"
     )
@@ -361,10 +439,25 @@ def _add_export(subparsers) -> None:
         metavar="FILE",
         help="write a float16 .npz (what --checkpoint, train --init and Detector.load take)",
     )
-    p.add_argument("--artifact", help="write a serialised jax.export detector")
-    p.add_argument("--res", type=_resolution, default=(240, 320), help="artifact input HxW")
-    p.add_argument("--top", type=_positive, default=1000, help="artifact keeps this many points")
-    _add_nms_radius(p, 0.0, "artifact NMS radius in px")
+    p.add_argument(
+        "--artifact",
+        metavar="FILE",
+        help="write a serialised jax.export detector of uint8 [B, H, W, 3] images (HxW: --res),"
+        " run with JAX alone: jax.export.deserialize(bytearray(open(FILE, 'rb').read()))"
+        ".call(images) gives keypoints [B, K, 2] (x, y), scores [B, K], descriptors [B, K, F]"
+        " and counts [B] (K: --top; docs/cli.md)",
+    )
+    p.add_argument(
+        "--res",
+        type=_resolution,
+        default=(240, 320),
+        metavar="HxW",
+        help="artifact input size (default 240x320)",
+    )
+    p.add_argument(
+        "--top", type=_positive, default=1000, help="artifact keeps this many points (default 1000)"
+    )
+    _add_nms_radius(p, 0.0, "artifact NMS radius in px (default 0)")
     _add_upsample(p)
 
 
@@ -401,9 +494,7 @@ def _add_track(subparsers) -> None:
     p.add_argument(
         "--every", type=_positive, default=1, metavar="N", help="track every N-th frame only"
     )
-    p.add_argument(
-        "--max-frames", type=_positive, metavar="N", help="stop after N tracked frames"
-    )
+    p.add_argument("--max-frames", type=_positive, metavar="N", help="stop after N tracked frames")
     p.add_argument(
         "--planar",
         action="store_true",
