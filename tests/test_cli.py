@@ -8,6 +8,7 @@ from conftest import TINY_RUN, USP_JAX, child_env, train_args
 
 from usp_jax import evaluation
 from usp_jax.cli import main, parse_args
+from usp_jax.evaluation.plotting import DPI, PANEL_INCHES
 from usp_jax.inference import weights as weights_lib
 
 
@@ -187,7 +188,8 @@ def test_train_resumes_and_the_checkpoint_detects_and_evaluates(
     spread = np.asarray(json.loads(out.read_text())["keypoints"])
     gaps = np.linalg.norm(spread[:, None] - spread[None], axis=-1) + 1e9 * np.eye(len(spread))
     assert gaps.min() > 4
-    assert (tmp_path / "k.png").stat().st_size > 0
+    # One panel of the one image, not the image twice as "reference" and "target".
+    assert cv2.imread(str(tmp_path / "k.png")).shape[1] == PANEL_INCHES * DPI
     evaluate = ["evaluate", "--hpatches", str(pairs_dir), "--checkpoint", str(workdir)]
     evaluate += ["--no-progress"]
     assert main([*evaluate, "--baselines", "orb", "--plots", str(tmp_path / "plots")]) == 0

@@ -51,6 +51,20 @@ def test_plot_keypoints_without_homography_or_points(tmp_path):
     assert png_shape(path)[1] == 2 * plotting.PANEL_INCHES * plotting.DPI
 
 
+def test_plot_detections_draws_one_image_with_its_points(tmp_path):
+    """``detect --out``: one panel (not the image twice), a green cross on each keypoint."""
+    black = np.zeros((48, 64, 3), np.uint8)
+    path = plotting.plot_detections(black, np.array([[16.0, 12.0], [48.0, 36.0]]), tmp_path / "d")
+    assert path == tmp_path / "d.png"
+    drawn = cv2.imread(str(path))
+    assert drawn.shape[1] == plotting.PANEL_INCHES * plotting.DPI
+    green = np.all(np.abs(drawn.astype(int) - (0x2C, 0xA0, 0x2C)) < 40, axis=-1)
+    columns = np.flatnonzero(green.any(axis=0))
+    # The crosses sit a quarter and three quarters across the one panel.
+    assert len(columns) and abs(columns.min() / drawn.shape[1] - 0.25) < 0.05
+    assert abs(columns.max() / drawn.shape[1] - 0.75) < 0.05
+
+
 def test_plot_matches_draws_estimated_and_failed_homographies(tmp_path):
     image1, image2 = images()
     points = np.random.default_rng(0).uniform(5, 40, size=(20, 2)).astype(np.float32)

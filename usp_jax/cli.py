@@ -219,7 +219,7 @@ def cmd_detect(args) -> None:
     features = detector.detect(image := read_image(args.image), top_n=args.top)
     print(f"{args.image}: {len(features.keypoints)} keypoints")
     if args.out:
-        plotting.plot_keypoints(image, features.keypoints, image, features.keypoints, args.out)
+        plotting.plot_detections(image, features.keypoints, args.out)
         print(f"wrote {args.out}")
     if args.json:
         pathlib.Path(args.json).write_text(

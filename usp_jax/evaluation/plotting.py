@@ -113,6 +113,25 @@ def plot_keypoints(
     return _save(figure, path)
 
 
+def plot_detections(image: np.ndarray, keypoints: np.ndarray, path: str | Path) -> Path:
+    """The detections of one image (``usp-jax detect --out``): one panel, a green cross per
+    keypoint, the count in the title. ``image`` uint8 ``[H, W, 3]`` or ``[H, W]``; ``keypoints``
+    ``[N, 2]`` (x, y) in its pixels."""
+    aspect = image.shape[1] / image.shape[0]
+    figure = Figure(figsize=(PANEL_INCHES, PANEL_INCHES / aspect + 0.5), layout="constrained")
+    axes = figure.subplots()
+    _show(axes, image, f"{len(keypoints)} keypoints")
+    axes.scatter(
+        *np.asarray(keypoints, dtype=np.float64).reshape(-1, 2).T,
+        marker="x",
+        color=GREEN,
+        s=18,
+        linewidths=1.0,
+    )
+    _keep_view(axes, image.shape)
+    return _save(figure, path)
+
+
 def plot_matches(
     image1: np.ndarray,
     image2: np.ndarray,

@@ -83,16 +83,17 @@ def methods(
     guide: Detector | None = None,
 ) -> list[Method]:
     """The methods of one evaluation: ``detector`` (if any, :func:`as_method`, with ``guide``) and
-    the named OpenCV ``baselines``, in that order, for a protocol keeping ``top_k`` points.
+    the named ``baselines`` (OpenCV's, or "xfeat": ``baselines.baseline_method``), in that order,
+    for a protocol keeping ``top_k`` points.
 
     The evaluation applies NMS and the shared-view filter before its own top-k, to
     UnsuperPoint's full candidate set; a baseline cut at exactly top-k before them would be left
     with fewer points than the model on every viewpoint pair, so each keeps 4 ``top_k``.
     """
-    from usp_jax.evaluation.baselines import opencv_method
+    from usp_jax.evaluation.baselines import baseline_method
 
     found = [as_method(detector, guide=guide)] if detector is not None else []
-    return found + [opencv_method(name, 4 * top_k) for name in baselines]
+    return found + [baseline_method(name, 4 * top_k) for name in baselines]
 
 
 @dataclasses.dataclass(frozen=True)
