@@ -202,6 +202,7 @@ def cmd_benchmark(args) -> None:
         top_n=args.top,
         repeats=args.repeats,
         include_opencv=not args.no_opencv,
+        include_xfeat=not args.no_opencv,
     )
     print(benchmark.format_benchmark(result))
     if args.json:
