@@ -51,6 +51,19 @@ def test_benchmark_result_is_json_serialisable(tiny_run):
     assert json.loads(json.dumps(tiny_run))["rows"] == tiny_run["rows"]
 
 
+def test_benchmark_reports_progress_per_timed_row_on_stderr(detector, capsys):
+    """Minutes of timing at the defaults: a bar on stderr names each row and counts them all."""
+    benchmark(detector, resolutions=((32, 48),), batch_sizes=(1,), repeats=1, warmup=0)
+    assert capsys.readouterr().err == ""  # progress is asked for, as the CLI does
+    benchmark(
+        detector, resolutions=((32, 48),), batch_sizes=(1,), repeats=1, warmup=0, progress=True
+    )
+    err = capsys.readouterr().err
+    rows = 1 + len(OPENCV_DETECTORS)
+    assert "benchmark" in err and f"{rows}/{rows}" in err
+    assert "UnsuperPoint, 32x48, batch 1" in err and f"{OPENCV_DETECTORS[-1]}, 32x48" in err
+
+
 def test_format_benchmark_is_the_papers_table_layout(tiny_run):
     table = format_benchmark(tiny_run)
     header = next(line for line in table.splitlines() if line.startswith("Detectors"))

@@ -203,6 +203,7 @@ def cmd_benchmark(args) -> None:
         repeats=args.repeats,
         include_opencv=not args.no_opencv,
         include_xfeat=not args.no_opencv,
+        progress=not args.no_progress,
     )
     print(benchmark.format_benchmark(result))
     if args.json:

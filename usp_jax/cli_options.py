@@ -381,6 +381,7 @@ def _add_benchmark(subparsers) -> None:
     p.add_argument(
         "--no-opencv", action="store_true", help="time the model only (no OpenCV, no XFeat)"
     )
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.add_argument("--json", help="write the settings and every timed row as JSON here")
     _add_upsample(p)
 

@@ -23,6 +23,7 @@ from collections.abc import Callable, Mapping, Sequence
 import cv2
 import jax
 import numpy as np
+from tqdm import tqdm
 
 from usp_jax.evaluation.baselines import opencv_method
 from usp_jax.evaluation.xfeat import XFeatNotInstalled, load_xfeat, xfeat_method
@@ -104,6 +105,7 @@ def benchmark(
     include_opencv: bool = True,
     images: Sequence[np.ndarray] | None = None,
     include_xfeat: bool = False,
+    progress: bool = False,
 ) -> dict:
     """Frames per second of ``detector`` (and of OpenCV's ORB, SIFT, AKAZE, BRISK at batch 1)
     on the same photos resized to each (height, width) of ``resolutions``. A mapping of names
@@ -113,7 +115,8 @@ def benchmark(
 
     ``top_n`` points are kept per image (None: :func:`protocol_top_n` of the resolution);
     ``images`` are uint8 RGB photos of any size (default :func:`benchmark_photos`), cycled to fill
-    a batch. Returns a JSON-serialisable dict: the device, platform and library versions, the
+    a batch; ``progress`` shows a tqdm bar on stderr naming the row being timed (the defaults
+    take minutes). Returns a JSON-serialisable dict: the device, platform and library versions, the
     settings, and ``rows`` with, per method, resolution and batch size, ``fps``, ``median_s``
     (one call) and ``first_call_s`` (for UnsuperPoint: compilation plus one run).
     """
@@ -137,6 +140,13 @@ def benchmark(
             xfeat_model = load_xfeat()
         except XFeatNotInstalled as err:
             skipped["XFeat"] = str(err)
+    host_count = len(OPENCV_DETECTORS) * include_opencv + (xfeat_model is not None)
+    bar = tqdm(
+        total=len(resolutions) * (len(batch_sizes) * len(detectors) + host_count),
+        desc="benchmark",
+        unit="row",
+        disable=not progress,
+    )
     for height, width in resolutions:
         n = protocol_top_n(height, width) if top_n is None else top_n
         resized = [
@@ -146,17 +156,22 @@ def benchmark(
         for batch in batch_sizes:
             stack = frames[:batch]
             for label, network in detectors.items():
+                bar.set_postfix_str(f"{label}, {height}x{width}, batch {batch}")
                 first, median = _timed(
                     lambda: network.detect_batch(stack, top_n=n), repeats, warmup
                 )
                 rows.append(_row(label, height, width, batch, n, first, median, device.platform))
+                bar.update()
         host = [opencv_method(name, n) for name in OPENCV_DETECTORS] if include_opencv else []
         host += [xfeat_method(n, model=xfeat_model)] if xfeat_model is not None else []
         for method in host:
+            bar.set_postfix_str(f"{method.name}, {height}x{width}")
             # One photo after another, as a video stream would feed them.
             stream = itertools.cycle(resized)
             first, median = _timed(lambda: method.detect(next(stream)), repeats, warmup)
             rows.append(_row(method.name, height, width, 1, n, first, median, "cpu"))
+            bar.update()
+    bar.close()
     return {
         "device": device.device_kind,
         "platform": device.platform,
