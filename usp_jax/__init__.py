@@ -23,7 +23,7 @@ from usp_jax.core.losses import (
     usp_loss,
 )
 from usp_jax.core.model import ModelConfig, Predictions, UnsuperPoint, fast_config, init_variables
-from usp_jax.inference import Detector, to_cv2
+from usp_jax.inference import Detector, TrackedFrame, TrackingConfig, to_cv2, track
 
 __version__ = "0.1.0"
 
@@ -45,6 +45,8 @@ __all__ = [
     "ModelConfig",
     "PhotometricConfig",
     "Predictions",
+    "TrackedFrame",
+    "TrackingConfig",
     "UnsuperPoint",
     "compose_homographies",
     "decorrelation_loss",
@@ -58,6 +60,7 @@ __all__ = [
     "sample_homography",
     "to_cv2",
     "total_loss",
+    "track",
     "uniform_loss",
     "usp_loss",
     "warp_image",

@@ -1,4 +1,5 @@
-"""The ``usp-jax`` command: train, evaluate, make-pairs, benchmark, detect, match, export and demo.
+"""The ``usp-jax`` command: train, evaluate, make-pairs, benchmark, detect, match, export, demo
+and track.
 Each command parses its options, checks its outputs can be written, and calls the Python API.
 
 Every failure a user can cause (a missing folder, a corrupt image, a bad override, an
@@ -327,6 +328,14 @@ def cmd_demo(args) -> None:
     demo(args.out, args.weights)
 
 
+def cmd_track(args) -> None:
+    from usp_jax import cli_track
+
+    for path, what in ((args.out, "--out"), (args.json, "--json"), (args.tracks, "--tracks")):
+        _check_output_file(path, what)
+    return cli_track.run(args, _load_detector)
+
+
 COMMANDS = {
     "train": cmd_train,
     "evaluate": cmd_evaluate,
@@ -336,6 +345,7 @@ COMMANDS = {
     "match": cmd_match,
     "export": cmd_export,
     "demo": cmd_demo,
+    "track": cmd_track,
 }
 
 

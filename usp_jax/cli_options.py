@@ -476,40 +476,10 @@ def _add_demo(subparsers) -> None:
 
 
 def _add_track(subparsers) -> None:
-    """The ``track`` subcommand: keypoint tracks through a video (``usp_jax.cli_track``)."""
-    from usp_jax.cli_track import METHODS
+    """The ``track`` subcommand, whose options live with it (``usp_jax.cli_track``)."""
+    from usp_jax.cli_track import add_parser
 
-    p = subparsers.add_parser("track", help="keypoint tracks through a video, folder or camera")
-    p.add_argument("source", help="a video file, a folder of frames (name order) or a camera index")
-    _add_checkpoint(p)
-    p.add_argument(
-        "--method",
-        choices=METHODS,
-        default="usp",
-        help="the detector: usp (the network, default), or orb, akaze, sift or xfeat (where its"
-        " package is installed) through the same tracker, for comparison",
-    )
-    p.add_argument("--top", type=_positive, default=1000, help="points per frame (default 1000)")
-    _add_nms_radius(p, 4.0, "the network's NMS radius in px (default 4: spread points)")
-    _add_max_side(p, f"shrink frames longer than this first (default {MAX_SIDE}; 0: never)")
-    p.add_argument(
-        "--every", type=_positive, default=1, metavar="N", help="track every N-th frame only"
-    )
-    p.add_argument("--max-frames", type=_positive, metavar="N", help="stop after N tracked frames")
-    p.add_argument(
-        "--planar",
-        action="store_true",
-        help="verify matches with a homography (a planar scene, a turning camera) instead of"
-        " the fundamental matrix",
-    )
-    p.add_argument("--json", help="one record per frame: points, track ids, matches, inliers, ms")
-    p.add_argument("--tracks", metavar="FILE", help="CSV track,frame,x,y of tracks seen twice+")
-    p.add_argument(
-        "--out", help="annotated video (.avi MJPG, .mp4) or, ending in .png, a strip of frames"
-    )
-    p.add_argument("--no-progress", action="store_true", help="no progress bar")
-    _add_upsample(p)
-    _add_any_scale(p)
+    add_parser(subparsers)
 
 
 def build_parser() -> argparse.ArgumentParser:

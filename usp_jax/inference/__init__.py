@@ -7,6 +7,7 @@ from usp_jax.inference.detector import MAX_SIDE, Detector
 from usp_jax.inference.export import export, load_exported
 from usp_jax.inference.features import Features, to_cv2
 from usp_jax.inference.matching import Matching, match_and_estimate
+from usp_jax.inference.tracking import TrackedFrame, TrackingConfig, track
 from usp_jax.inference.turning import TurnedMatching, match_any_rotation
 from usp_jax.inference.weights import (
     DEFAULT_PRETRAINED,
@@ -24,6 +25,8 @@ __all__ = [
     "Detector",
     "Features",
     "Matching",
+    "TrackedFrame",
+    "TrackingConfig",
     "TurnedMatching",
     "export",
     "load_exported",
@@ -32,4 +35,5 @@ __all__ = [
     "match_any_rotation",
     "save_weights",
     "to_cv2",
+    "track",
 ]

@@ -1,0 +1,225 @@
+"""``usp-jax track SOURCE``: keypoint tracks through a video file, a folder of frames or a camera
+(``inference.tracking``), with the shipped network or, through the same tracker, OpenCV's ORB,
+AKAZE and SIFT or XFeat (``--method``).
+
+Every output is checked before the first frame and written only when the run is complete
+(``--out`` under a temporary name, renamed at the end; ``--json`` and ``--tracks`` at the end);
+a failure on the way leaves none of them. Ctrl-C ends the run as the end of the video would.
+
+``--any-rotation`` is not offered: the tracker matches each frame to the previous frame and to a
+recent keyframe, between which a camera turns a few degrees at most, within what the upright
+network matches; turning every frame back would add two detections per frame for no gain. A
+camera that rolls fast is better served by ``--weights rotation``.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import itertools
+import json
+import os
+import pathlib
+import statistics
+
+import numpy as np
+
+from usp_jax.inference import tracking, video
+from usp_jax.inference.detector import MAX_SIDE
+
+#: ``--method`` names: the network, then the peers that run through the same tracker.
+METHODS = ("usp", "orb", "akaze", "sift", "xfeat")
+
+
+def add_parser(subparsers) -> None:
+    """The ``track`` subcommand's options (``cli_options.build_parser`` calls this)."""
+    from usp_jax import cli_options as options
+
+    p = subparsers.add_parser("track", help="keypoint tracks through a video, folder or camera")
+    p.add_argument("source", help="a video file, a folder of frames (name order) or a camera index")
+    options._add_checkpoint(p)
+    p.add_argument(
+        "--method",
+        choices=METHODS,
+        default="usp",
+        help="the detector: usp (the network, default), or orb, akaze, sift or xfeat (where its"
+        " package is installed) through the same tracker, for comparison",
+    )
+    p.add_argument(
+        "--top", type=options._positive, default=1000, help="points per frame (default 1000)"
+    )
+    options._add_nms_radius(p, 4.0, "the network's NMS radius in px (default 4: spread points)")
+    options._add_max_side(
+        p,
+        f"shrink frames longer than this first, every method alike (default {MAX_SIDE}; 0: never)",
+    )
+    p.add_argument(
+        "--every", type=options._positive, default=1, metavar="N", help="track every N-th frame"
+    )
+    p.add_argument(
+        "--max-frames",
+        type=options._positive,
+        metavar="N",
+        help="stop after N tracked frames (Ctrl-C also ends a run, keeping its outputs)",
+    )
+    p.add_argument(
+        "--planar",
+        action="store_true",
+        help="verify matches with a homography (a planar scene, a camera that only turns)"
+        " instead of the fundamental matrix",
+    )
+    p.add_argument(
+        "--json", help="one record per frame: index, points, track ids, matches, inliers, ms"
+    )
+    p.add_argument(
+        "--tracks", metavar="FILE", help="CSV track,frame,x,y of every track seen in 2+ frames"
+    )
+    p.add_argument(
+        "--out", help="annotated video (.avi: MJPG, .mp4: mp4v) or, ending in .png, a frame strip"
+    )
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    options._add_upsample(p)
+    if hasattr(options, "_add_any_scale"):
+        options._add_any_scale(p)
+
+
+def _method(args, load_detector):
+    """The detector ``--method`` names, with ``--top`` points per frame."""
+    if args.method != "usp":
+        used = [f"--{n}" for n in ("weights", "checkpoint") if getattr(args, n, None)]
+        used += ["--any-scale"] if getattr(args, "any_scale", False) else []
+        if used:
+            raise ValueError(f"{' and '.join(used)} only apply to --method usp")
+        # XFeat without its packages raises a ValueError saying so.
+        from usp_jax.evaluation.baselines import baseline_method
+
+        return baseline_method(args.method, args.top)
+    options = {"top_n": args.top, "nms_radius": args.nms}
+    if getattr(args, "any_scale", False):
+        options["any_scale"] = True
+    return load_detector(args, **options)
+
+
+def _write_text(path: str, text: str) -> None:
+    """``text`` into ``path`` through a temporary name beside it, so it is never half-written."""
+    target = pathlib.Path(path).expanduser()
+    partial = video.partial_path(target)
+    try:
+        partial.write_text(text)
+        os.replace(partial, target)
+    finally:
+        partial.unlink(missing_ok=True)
+
+
+def _record(result: tracking.TrackedFrame) -> dict:
+    """One frame's ``--json`` record."""
+    return {
+        "index": result.index,
+        "points": np.round(result.points, 2).tolist(),
+        "track_ids": result.track_ids.tolist(),
+        "matches": result.matches.tolist(),
+        "inliers": result.inliers.tolist(),
+        "keyframe": result.keyframe,
+        "keyframe_inliers": result.keyframe_inliers,
+        "is_keyframe": result.is_keyframe,
+        "ms": round(result.ms, 2),
+    }
+
+
+def _tracks_csv(results: list[tracking.TrackedFrame]) -> str:
+    """``--tracks``: ``track,frame,x,y`` rows of every track seen in two frames or more."""
+    lengths = tracking.track_lengths(results)
+    ids = np.unique(np.concatenate([r.track_ids for r in results]))
+    kept = set(ids[lengths >= 2].tolist())
+    rows = sorted(
+        (track, r.index, x, y)
+        for r in results
+        for track, (x, y) in zip(r.track_ids.tolist(), r.points.tolist())
+        if track in kept
+    )
+    return "track,frame,x,y\n" + "".join(f"{t},{i},{x:.2f},{y:.2f}\n" for t, i, x, y in rows)
+
+
+def summary(results: list[tracking.TrackedFrame]) -> dict:
+    """The run's numbers: frames, mean inliers to the previous frame, keyframes, median length
+    of the tracks seen in two frames or more, mean ms per frame (the first frame, which compiles
+    the network, left out when there are others) and frames/s."""
+    lengths = tracking.track_lengths(results)
+    times = [r.ms for r in results[1:]] or [r.ms for r in results]
+    inliers = [int(r.inliers.sum()) for r in results[1:]]
+    return {
+        "frames": len(results),
+        "mean_inliers": statistics.fmean(inliers) if inliers else 0.0,
+        "keyframes": sum(r.is_keyframe for r in results),
+        "tracks": int(np.sum(lengths >= 2)),
+        "median_track_length": float(np.median(lengths[lengths >= 2])) if any(lengths >= 2) else 0,
+        "ms_per_frame": statistics.fmean(times) if times else 0.0,
+        "frames_per_s": 1e3 / statistics.fmean(times) if times else 0.0,
+    }
+
+
+def run(args, load_detector) -> int:
+    """The command (``cli.cmd_track`` has checked that the output paths can be written)."""
+    from tqdm import tqdm
+
+    # libav's complaints about a stream it decodes anyway (AV_LOG_QUIET), unless the user asks.
+    os.environ.setdefault("OPENCV_FFMPEG_LOGLEVEL", "-8")
+    if args.out:
+        video.check_output(args.out)
+    method = _method(args, load_detector)
+    source = video.open_source(args.source, args.max_side)
+    config = tracking.TrackingConfig(planar=args.planar, every=args.every)
+    current = {}
+
+    def remember(frames):
+        # The tracker takes the frames lazily, so the last one taken is the one it yields for.
+        for frame in frames:
+            current["frame"] = frame
+            yield frame
+
+    frames = remember(source.frames)
+    total = None if source.count is None else -(-source.count // args.every)
+    if args.max_frames:
+        total = args.max_frames if total is None else min(total, args.max_frames)
+    results, annotate = [], video.Annotator()
+    with contextlib.ExitStack() as stack:
+        out = stack.enter_context(video.AnnotatedOutput(args.out, source.fps)) if args.out else None
+        tracked = itertools.islice(tracking.track(frames, method, config), args.max_frames or None)
+        bar = stack.enter_context(
+            tqdm(tracked, total=total, unit="frame", disable=args.no_progress, leave=False)
+        )
+        try:
+            for result in bar:
+                results.append(result)
+                if out is not None:
+                    out.write(annotate(current["frame"], result))
+        except KeyboardInterrupt:
+            pass  # the end of the run, as the end of the video would be
+        if not results:
+            raise ValueError(f"{args.source}: no frame was tracked")
+        numbers = summary(results)
+    height, width = current["frame"].shape[:2]
+    print(
+        f"{args.source}: {numbers['frames']} frames tracked with {args.method} at"
+        f" {width}x{height}; {numbers['mean_inliers']:.0f} inliers per frame to the previous"
+        f" ({'homography' if args.planar else 'fundamental matrix'}),"
+        f" {numbers['keyframes']} keyframes, {numbers['tracks']} tracks seen twice or more"
+        f" (median {numbers['median_track_length']:g} frames),"
+        f" {numbers['ms_per_frame']:.0f} ms per frame ({numbers['frames_per_s']:.1f} frames/s)"
+    )
+    if args.out:
+        print(f"wrote {args.out}")
+    if args.json:
+        document = {
+            "source": args.source,
+            "method": args.method,
+            "size": [width, height],
+            "geometry": "homography" if args.planar else "fundamental",
+            "summary": numbers,
+            "frames": [_record(r) for r in results],
+        }
+        _write_text(args.json, json.dumps(document))
+        print(f"wrote {args.json}")
+    if args.tracks:
+        _write_text(args.tracks, _tracks_csv(results))
+        print(f"wrote {args.tracks}")
+    return 0

@@ -1,0 +1,225 @@
+"""Keypoint tracking through a video, the front end of a VSLAM or AR system (the paper's future
+work): each frame's features are matched to the previous frame and to the last keyframe, the
+matches are checked against the scene's geometry, and the surviving points carry track ids from
+frame to frame.
+
+The keyframe rule: the first frame is a keyframe. Every later frame is matched to the previous
+frame and, when that is not the keyframe, to the keyframe as well. A frame becomes the new
+keyframe when its inliers to the keyframe fall below ``keyframe_ratio`` (default one half) of
+its inliers to the previous frame: the view has moved far enough from the keyframe that half of
+what a short step still matches no longer matches across the long one (or the shot was cut).
+Matching to the keyframe bridges a point over frames where its detection or match was missed:
+a point with no verified match in the previous frame takes the track id of its verified match
+in the keyframe, unless another point of the frame already carries that id.
+
+Any detector fits: a ``Detector`` or any object with ``detect(uint8 [H, W, 3] RGB) -> Features``
+and, for binary descriptors, ``norm = cv2.NORM_HAMMING`` (``usp_jax.evaluation``'s methods).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import itertools
+import time
+from collections.abc import Iterable, Iterator
+from typing import Any, NamedTuple
+
+import cv2
+import numpy as np
+
+from usp_jax.inference.detector import Detector
+from usp_jax.inference.features import Features
+from usp_jax.inference.matching import (
+    RANSAC_MAX_ITERS,
+    RANSAC_THRESHOLD,
+    estimate_homography,
+    matched_points,
+    nearest_neighbours,
+)
+
+#: Points per frame and NMS radius of the default detector: the protocol's count above 240x320,
+#: and the radius that spreads points for a better-conditioned estimate (RESULTS.md).
+TOP_N = 1000
+NMS_RADIUS = 4.0
+#: RANSAC confidence of the fundamental matrix (OpenCV's default, 0.99, stops too early for
+#: hundreds of matches with many outliers).
+CONFIDENCE = 0.999
+
+
+@dataclasses.dataclass(frozen=True)
+class TrackingConfig:
+    """``planar``: verify matches with a homography (a planar scene or a turning camera) instead
+    of the fundamental matrix; either way RANSAC's inlier distance is the protocol's 3 px (to
+    the epipolar line, or of the homography's reprojection). ``keyframe_ratio``: the keyframe
+    rule's fraction (module docstring). ``every``: track every N-th input frame."""
+
+    planar: bool = False
+    keyframe_ratio: float = 0.5
+    every: int = 1
+
+    def __post_init__(self):
+        if not 0 <= self.keyframe_ratio <= 1:
+            raise ValueError(f"keyframe_ratio must be in [0, 1], got {self.keyframe_ratio}")
+        if not isinstance(self.every, int) or self.every < 1:
+            raise ValueError(f"every must be a positive integer, got {self.every!r}")
+
+
+class TrackedFrame(NamedTuple):
+    """One frame's result.
+
+    index: the frame's position in the input (0-based, counting frames skipped by ``every``).
+    points: float32 ``[N, 2]`` (x, y) keypoints. track_ids: int64 ``[N]``, a point's track; a
+    new id is a point seen for the first time. matches: int64 ``[K, 2]`` mutual nearest
+    neighbours (index into the previous tracked frame's points, index into ``points``);
+    inliers: bool ``[K]``, those consistent with the geometry. keyframe: the index of the
+    keyframe this frame was matched to; keyframe_inliers: its verified matches to it (equal to
+    the inliers' count when the keyframe is the previous frame). is_keyframe: this frame is the
+    keyframe of the frames after it. ms: milliseconds spent on the frame (detection, matching,
+    verification, track ids).
+    """
+
+    index: int
+    points: np.ndarray
+    track_ids: np.ndarray
+    matches: np.ndarray
+    inliers: np.ndarray
+    keyframe: int
+    keyframe_inliers: int
+    is_keyframe: bool
+    ms: float
+
+
+def verify(points1: np.ndarray, points2: np.ndarray, config: TrackingConfig) -> np.ndarray:
+    """bool ``[K]``: which matched points ``[K, 2]`` (frame 1, frame 2) fit one RANSAC
+    fundamental matrix (``cv2.findFundamentalMat``, ``FM_RANSAC``; the 8-point minimum), or one
+    homography with ``config.planar`` (``matching.estimate_homography``). All False when there
+    are too few points or no estimate."""
+    if config.planar:
+        return estimate_homography(points1, points2)[1]
+    none = np.zeros(len(points1), dtype=bool)
+    if len(points1) < 8:
+        return none
+    estimate, mask = cv2.findFundamentalMat(
+        np.asarray(points1, np.float64),
+        np.asarray(points2, np.float64),
+        cv2.FM_RANSAC,
+        RANSAC_THRESHOLD,
+        CONFIDENCE,
+        RANSAC_MAX_ITERS,
+    )
+    if estimate is None or mask is None:
+        return none
+    return mask.ravel().astype(bool)
+
+
+def match_frames(
+    features1: Features, features2: Features, norm: int, config: TrackingConfig
+) -> tuple[np.ndarray, np.ndarray]:
+    """Mutual nearest neighbours of two frames' descriptors (``matching.nearest_neighbours``)
+    and :func:`verify`: (int64 ``[K, 2]`` matches, bool ``[K]`` inliers)."""
+    matches = nearest_neighbours(features1.descriptors, features2.descriptors, norm, True)
+    return matches, verify(*matched_points(features1, features2, matches), config)
+
+
+def assign_track_ids(
+    count: int,
+    previous_ids: np.ndarray,
+    previous: tuple[np.ndarray, np.ndarray],
+    keyframe_ids: np.ndarray,
+    keyframe: tuple[np.ndarray, np.ndarray],
+    next_id: int,
+) -> tuple[np.ndarray, int]:
+    """Track ids of a frame's ``count`` points and the next unused id.
+
+    ``previous`` and ``keyframe`` are (matches ``[K, 2]``, inliers ``[K]``) to the previous frame
+    and to the keyframe, whose points carry ``previous_ids`` and ``keyframe_ids``. A point
+    verified against the previous frame continues its track; otherwise one verified against the
+    keyframe continues the keyframe point's track when no other point carries it yet; every
+    other point starts a new track. Mutual nearest neighbours are one-to-one, so no id repeats.
+    """
+    ids = np.full(count, -1, np.int64)
+    matches, inliers = previous
+    ids[matches[inliers, 1]] = previous_ids[matches[inliers, 0]]
+    matches, inliers = keyframe
+    mine, theirs = matches[inliers, 1], keyframe_ids[matches[inliers, 0]]
+    bridge = (ids[mine] < 0) & ~np.isin(theirs, ids)
+    ids[mine[bridge]] = theirs[bridge]
+    new = ids < 0
+    ids[new] = np.arange(next_id, next_id + int(new.sum()))
+    return ids, next_id + int(new.sum())
+
+
+def default_detector() -> Detector:
+    """The shipped default weights, ``TOP_N`` points, NMS radius ``NMS_RADIUS``."""
+    return Detector.pretrained(top_n=TOP_N, nms_radius=NMS_RADIUS)
+
+
+def track(
+    frames: Iterable[np.ndarray],
+    detector: Any = None,
+    config: TrackingConfig = TrackingConfig(),
+) -> Iterator[TrackedFrame]:
+    """Tracks keypoints through ``frames`` (uint8 ``[H, W, 3]`` RGB, all one size), yielding one
+    :class:`TrackedFrame` per tracked frame as it is done (module docstring: the keyframe rule).
+
+    ``detector``: a ``Detector`` (compiled once, for the frames' size), any object with
+    ``detect`` and ``norm`` (module docstring), or None for :func:`default_detector`. Raises
+    ValueError naming the frame when a frame's size differs from the first's.
+    """
+    detector = default_detector() if detector is None else detector
+    norm = getattr(detector, "norm", cv2.NORM_L2)
+    no_matches = (np.zeros((0, 2), np.int64), np.zeros(0, bool))
+    previous = keyframe = None  # (index, features, track ids)
+    next_id, shape = 0, None
+    for index, frame in itertools.islice(enumerate(frames), 0, None, config.every):
+        frame = np.asarray(frame)
+        if shape is None:
+            shape = frame.shape
+        elif frame.shape != shape:
+            raise ValueError(
+                f"frame {index} has shape {frame.shape}, the first frame {shape}: every frame must"
+                " be one size"
+            )
+        start = time.perf_counter()
+        features = detector.detect(frame)
+        count = len(features.keypoints)
+        to_previous = to_keyframe = no_matches
+        separate = previous is not None and keyframe[0] != previous[0]
+        if previous is not None:
+            to_previous = match_frames(previous[1], features, norm, config)
+            to_keyframe = (
+                match_frames(keyframe[1], features, norm, config) if separate else to_previous
+            )
+        ids, next_id = assign_track_ids(
+            count,
+            previous[2] if previous else np.zeros(0, np.int64),
+            to_previous,
+            keyframe[2] if separate else np.zeros(0, np.int64),
+            to_keyframe if separate else no_matches,
+            next_id,
+        )
+        inliers, keyframe_inliers = int(to_previous[1].sum()), int(to_keyframe[1].sum())
+        is_keyframe = keyframe is None or keyframe_inliers < config.keyframe_ratio * inliers
+        matched_to = index if keyframe is None else keyframe[0]
+        previous = (index, features, ids)
+        if is_keyframe:
+            keyframe = previous
+        yield TrackedFrame(
+            index,
+            np.asarray(features.keypoints, np.float32).reshape(-1, 2),
+            ids,
+            *to_previous,
+            matched_to,
+            keyframe_inliers,
+            is_keyframe,
+            1e3 * (time.perf_counter() - start),
+        )
+
+
+def track_lengths(results: Iterable[TrackedFrame]) -> np.ndarray:
+    """int64 ``[T]``: in how many frames each track id appears, over every track (a point never
+    matched is a track of length 1)."""
+    ids = [result.track_ids for result in results]
+    if not ids:
+        return np.zeros(0, np.int64)
+    return np.unique(np.concatenate(ids), return_counts=True)[1].astype(np.int64)
