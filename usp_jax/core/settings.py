@@ -38,6 +38,11 @@ RANGES = {
     "loss.lambda_d": _NON_NEGATIVE,
     "loss.eps_correspond": (1e-9, None),
     "loss.eps_descriptor": (1e-9, None),
+    "distill.temperature": (1e-3, None),
+    **{
+        f"distill.{name}": _NON_NEGATIVE
+        for name in ("alpha_self", "beta_score", "beta_position", "beta_descriptor")
+    },
     **{
         f"loss.{name}": _NON_NEGATIVE
         for name in (

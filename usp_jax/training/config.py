@@ -19,6 +19,7 @@ from typing import Any
 
 from usp_jax.core import settings
 from usp_jax.core.augment import PhotometricConfig
+from usp_jax.core.distillation import DistillConfig
 from usp_jax.core.geometry import HomographyConfig
 from usp_jax.core.losses import LossConfig
 from usp_jax.core.model import ModelConfig
@@ -56,6 +57,7 @@ class Config:
     photometric: PhotometricConfig = PhotometricConfig()
     data: DataConfig = DataConfig()
     optim: OptimConfig = OptimConfig()
+    distill: DistillConfig = DistillConfig()
     batch_size: int = 5
     num_steps: int = 236_574  # 10 epochs of COCO train2017 (118,287 images) at batch 5.
     seed: int = 0
@@ -204,9 +206,10 @@ def assemble(
     init: str | None = None,
     overrides: Sequence[str] = (),
     steps: int | None = None,
+    teacher: str | None = None,
 ) -> Config:
-    """The config of one ``usp-jax train`` command: :func:`load` ``spec``, then ``init_weights=init``
-    and ``data.source=data`` (when given), then ``overrides`` in order (a later key wins, so an
+    """The config of one ``usp-jax train`` command: :func:`load` ``spec``, then ``init_weights=init``,
+    ``distill.teacher=teacher`` and ``data.source=data`` (when given), then ``overrides`` in order (a later key wins, so an
     explicit ``data.source=`` beats ``data``), then ``num_steps=steps`` (when given).
 
     ``steps`` is ``num_steps``: giving both, they must agree, so that neither silently beats the
@@ -216,6 +219,7 @@ def assemble(
     """
     config = load(spec)
     options = [f"init_weights={init}"] if init else []
+    options += [f"distill.teacher={teacher}"] if teacher else []
     options += [f"data.source={data}"] if data else []
     config = override(config, [*options, *overrides])
     if steps is not None:
@@ -278,6 +282,7 @@ def read(path: pathlib.Path) -> Config:
 
 __all__ = [
     "Config",
+    "DistillConfig",
     "OptimConfig",
     "assemble",
     "cpu",

@@ -21,10 +21,10 @@ import optax
 from jax.sharding import NamedSharding
 from jax.sharding import PartitionSpec as P
 
-from usp_jax.core import augment, geometry, losses
+from usp_jax.core import augment, distillation, geometry, losses
 from usp_jax.core.cpu_kernels import compiler_options
-from usp_jax.core.model import Predictions, UnsuperPoint, init_variables
-from usp_jax.inference.weights import load_weights
+from usp_jax.core.model import ModelConfig, Predictions, UnsuperPoint, init_variables
+from usp_jax.inference.weights import load_named
 from usp_jax.training import config as config_lib
 
 
@@ -37,6 +37,29 @@ class TrainState:
     batch_stats: Any
     opt_state: Any
     key: jax.Array  # uint32 [2], base key; step s uses fold_in(key, s)
+
+
+@flax.struct.dataclass
+class Teacher:
+    """A frozen network whose outputs the student is trained towards (``core.distillation``).
+
+    Not part of ``TrainState``: it never changes, and a resumed run loads it again by name."""
+
+    variables: Any  # {"params", "batch_stats"}
+    model: ModelConfig = flax.struct.field(pytree_node=False)
+
+
+def load_teacher(config: config_lib.Config) -> Teacher | None:
+    """The teacher ``config.distill.teacher`` names (None when it names none). Raises
+    FileNotFoundError or ValueError in one line for a missing, unreadable or non-finite one."""
+    if not config.distill.teacher:
+        return None
+    model, variables = load_named(config.distill.teacher)
+    # A shipped or .npz file is checked on reading; a checkpoint is not, and NaN targets would
+    # only surface as a diverged run many minutes later.
+    if not all(bool(jnp.all(jnp.isfinite(x))) for x in jax.tree.leaves(variables)):
+        raise ValueError(f"{config.distill.teacher} holds NaN or infinite weights")
+    return Teacher(variables=variables, model=model)
 
 
 def learning_rate(cfg: config_lib.OptimConfig) -> optax.Schedule:
@@ -60,6 +83,10 @@ def check_config(config: config_lib.Config) -> None:
     for settings that only make sense together (each section validates itself;
     ``config.override`` applies one key at a time, so the sections cannot check each other)."""
     config_lib.validate(config)
+    try:
+        load_teacher(config)
+    except (OSError, ValueError) as error:
+        raise ValueError(f"distill.teacher: {error}") from None
     if config.homography.rotation_range is not None and not config.data.context_window:
         raise ValueError(
             f"homography.rotation_range={config.homography.rotation_range} needs "
@@ -73,7 +100,7 @@ def create_state(config: config_lib.Config) -> TrainState:
     init_key, train_key = jax.random.split(key)
     variables = init_variables(init_key, config.model)
     if config.init_weights:
-        model_config, loaded = load_weights(config.init_weights)
+        model_config, loaded = load_named(config.init_weights)
         # Compare weight shapes, not configs: dtype, BatchNorm momentum or the heads' init scale
         # may differ between the exporting and the continuing run (export on a CPU writes
         # float32, a TPU run computes in bfloat16) without changing a single weight.
@@ -207,13 +234,16 @@ def siamese_loss(
     images_b: jax.Array,
     homographies: jax.Array,
     config: config_lib.Config,
+    teacher_pred: Predictions | None = None,
 ) -> tuple[jax.Array, tuple[dict, Any]]:
     """Eq. 4 of a batch of branch pairs, both branches through one network in training mode.
 
     images_a, images_b: [B, H, W, 3] float in [0, 1]; homographies: [B, 3, 3] T mapping A's pixels
-    to B's (as ``make_branches`` returns them). Returns (loss, (metrics, new batch_stats)), the
-    metrics ``losses.total_loss``'s and the ``pred/`` statistics of both branches' predictions;
-    differentiable in ``params``.
+    to B's (as ``make_branches`` returns them). With ``teacher_pred`` (a frozen teacher's
+    predictions of ``images_a`` then ``images_b``, [2B, ...]) the loss is ``distill.alpha_self``
+    times eq. 4 plus ``distillation.distillation_loss``. Returns (loss, (metrics, new
+    batch_stats)), the metrics ``losses.total_loss``'s (and ``distill/``'s) and the ``pred/``
+    statistics of both branches' predictions; differentiable in ``params``.
     """
     batch, height, width, _ = images_a.shape
     # One forward over both branches: the siamese weights are shared, and BatchNorm sees both
@@ -227,15 +257,29 @@ def siamese_loss(
     pred_a = jax.tree.map(lambda x: x[:batch], pred)
     pred_b = jax.tree.map(lambda x: x[batch:], pred)
     loss, metrics = losses.total_loss(pred_a, pred_b, homographies, height, width, config.loss)
+    if teacher_pred is not None:
+        teacher_a = jax.tree.map(lambda x: x[:batch], teacher_pred)
+        teacher_b = jax.tree.map(lambda x: x[batch:], teacher_pred)
+        distilled, distill_metrics = distillation.distillation_loss(
+            pred_a, pred_b, teacher_a, teacher_b, config.distill
+        )
+        loss = config.distill.alpha_self * loss + distilled
+        # "loss" stays what is minimised; eq. 4 alone goes on under its own name.
+        metrics.update(distill_metrics, **{"loss/self": metrics["loss"], "loss": loss})
     metrics.update({f"pred/{k}": v for k, v in _prediction_stats(pred).items()})
     return loss, (metrics, updates["batch_stats"])
 
 
 def train_step(
-    state: TrainState, images: jax.Array, config: config_lib.Config
+    state: TrainState,
+    images: jax.Array,
+    config: config_lib.Config,
+    teacher: Teacher | None = None,
 ) -> tuple[TrainState, dict]:
     """One optimisation step on a uint8 batch [B, H, W, 3] (with ``config.data.context_window``,
     context windows [B, S, S, 4], see ``make_window_branches``); a pure function of its inputs.
+    A ``teacher`` sees both branches in inference mode, without gradient, and its predictions
+    are the distillation targets (``siamese_loss``).
 
     Returns the new state and a metrics dict (every loss term, K, mean d_k, score and position
     statistics, ``finite``). A step whose loss, gradients or new parameters are not finite leaves
@@ -260,8 +304,18 @@ def train_step(
             step_key, images, config.homography, config.photometric
         )
 
+    teacher_pred = None
+    if teacher is not None:
+        teacher_pred = jax.lax.stop_gradient(
+            UnsuperPoint(teacher.model).apply(
+                teacher.variables, jnp.concatenate([images_a, images_b]), train=False
+            )
+        )
+
     def loss_fn(params):
-        return siamese_loss(params, state.batch_stats, images_a, images_b, homographies, config)
+        return siamese_loss(
+            params, state.batch_stats, images_a, images_b, homographies, config, teacher_pred
+        )
 
     (loss, (metrics, batch_stats)), grads = jax.value_and_grad(loss_fn, has_aux=True)(state.params)
     updates, opt_state = optimizer.update(grads, state.opt_state, state.params)
@@ -286,11 +340,15 @@ def jit_train_step(config: config_lib.Config, mesh: jax.sharding.Mesh) -> Callab
     """``train_step`` jitted data-parallel: batch sharded over ``mesh``, state replicated.
 
     Under plain jit with sharded inputs XLA inserts the gradient all-reduce itself, and the
-    BatchNorm statistics are global across devices, so N devices compute what one would.
+    BatchNorm statistics are global across devices, so N devices compute what one would. The
+    teacher ``config.distill`` names, if any, is loaded here and compiled into the step.
     """
     replicated = NamedSharding(mesh, P())
+    teacher = load_teacher(config)
+    if teacher is not None:
+        teacher = jax.device_put(teacher, replicated)
     return jax.jit(
-        lambda state, images: train_step(state, images, config),
+        lambda state, images: train_step(state, images, config, teacher),
         in_shardings=(replicated, NamedSharding(mesh, P("data"))),
         out_shardings=(replicated, replicated),
         donate_argnums=0,
