@@ -373,7 +373,13 @@ def test_sizes_and_counts_below_one_are_rejected_by_the_parser(argv, message, ca
 
 def test_demo_runs_offline_on_the_shipped_weights_and_writes_its_pngs(tmp_path, capsys):
     assert main(["demo", "--out", str(tmp_path)]) == 0
-    out = capsys.readouterr().out
+    out, err = capsys.readouterr()
+    # Its steps count from 1, and every column of its table is explained in one line.
+    steps = [err.find(f"[{k}/3]") for k in (1, 2, 3)]
+    assert -1 not in steps and steps == sorted(steps)
+    legend = out.split("\n\n")[-1].splitlines()
+    for column in ("RS", "LE", "HA", "MS"):
+        assert sum(line.startswith(f"{column}") for line in legend) == 1
     assert "weights shipped with usp-jax" in out and "never saw" in out
     assert all(name in out for name in ("UnsuperPoint", "ORB", "SIFT"))
     assert len(list(tmp_path.glob("UnsuperPoint_v_*_keypoints.png"))) == 1

@@ -2,6 +2,8 @@
 ``--weights`` the names that exist. Walking the parser makes a future option without help fail."""
 
 import argparse
+import pathlib
+import re
 
 import pytest
 
@@ -70,3 +72,10 @@ def test_help_formatter_adds_a_missing_default():
     text = " ".join(parser.format_help().split())
     assert "a number (default: 7)" in text
     assert "a number (default 8)" in text and "(default: 8)" not in text
+
+
+def test_demo_help_states_the_time_the_readme_states():
+    text = " ".join(COMMANDS["usp-jax"].format_help().split())
+    (duration,) = re.findall(r"demo .*?(about \d+ s on 2 idle CPU cores)", text)
+    readme = pathlib.Path(__file__).resolve().parents[1] / "README.md"
+    assert duration in " ".join(readme.read_text().split())

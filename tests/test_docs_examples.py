@@ -1,0 +1,66 @@
+"""The Python blocks of the README and docs/cli.md run as pasted: every name defined, every
+module imported, the shapes and dtypes they state what the code takes."""
+
+import pathlib
+import re
+import subprocess
+import sys
+
+import jax
+import numpy as np
+import pytest
+from conftest import SMALL_MODEL, child_env
+
+from usp_jax.core.model import init_variables
+from usp_jax.inference import Detector, export
+
+ROOT = pathlib.Path(__file__).resolve().parents[1]
+
+# Run by the test only, before a block: photos come back at a quarter of their size, so the
+# README's code runs as written in seconds rather than a minute.
+SMALL_PHOTOS = """\
+import cv2
+_imread = cv2.imread
+cv2.imread = lambda *args: cv2.resize(_imread(*args), None, fx=0.25, fy=0.25)
+"""
+
+
+def python_blocks(path: pathlib.Path) -> list[str]:
+    """The fenced ```python blocks of a Markdown file, in order."""
+    return re.findall(r"^```python\n(.*?)^```$", path.read_text(), flags=re.S | re.M)
+
+
+def test_python_blocks_are_found():
+    assert python_blocks(ROOT / "README.md")
+    assert len(python_blocks(ROOT / "docs" / "cli.md")) == 1
+
+
+@pytest.mark.slow
+def test_readme_python_blocks_run_as_pasted_in_a_fresh_interpreter(tmp_path):
+    for block in python_blocks(ROOT / "README.md"):
+        done = subprocess.run(
+            [sys.executable, "-c", SMALL_PHOTOS + block],
+            cwd=tmp_path,
+            env=child_env(),
+            capture_output=True,
+            text=True,
+            timeout=600,
+        )
+        assert done.returncode == 0, f"README block failed:\n{block}\n{done.stderr[-3000:]}"
+
+
+def test_docs_artifact_example_loads_and_runs_an_exported_detector(tmp_path, monkeypatch):
+    """docs/cli.md's load-and-run example on a real artifact gives the detector's own points."""
+    (block,) = python_blocks(ROOT / "docs" / "cli.md")
+    size = re.search(r"--res (\d+)x(\d+)", block)
+    height, width = int(size[1]), int(size[2])
+    variables = init_variables(jax.random.PRNGKey(0), SMALL_MODEL)
+    detector = Detector(variables, SMALL_MODEL, top_n=20)
+    export(detector, tmp_path / "detector.bin", height, width)
+    monkeypatch.chdir(tmp_path)
+    names: dict = {}
+    exec(compile(block, "docs/cli.md", "exec"), names)
+    expected = detector.detect_batch(names["images"])
+    assert names["keypoints"].shape == (len(names["images"]), 20, 2)
+    np.testing.assert_allclose(names["points"], expected[0].keypoints, atol=1e-4)
+    np.testing.assert_array_equal(names["counts"], [len(f.keypoints) for f in expected])

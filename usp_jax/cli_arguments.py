@@ -1,0 +1,178 @@
+"""The building blocks of the ``usp-jax`` options: argument types that reject a bad value in one
+line before anything runs, the options several commands share (weights, checkpoint, upsampling,
+NMS, rotation and scale), and the parser class (one-line errors, every default in the help).
+``cli_options`` and ``cli_track`` build their subcommands from them."""
+
+from __future__ import annotations
+
+import argparse
+import math
+
+from usp_jax.inference.detector import MAX_SIDE
+from usp_jax.inference.weights import DEFAULT_PRETRAINED, PRETRAINED
+
+# The largest --upsample and --res side: beyond, the activations alone outgrow any memory.
+MAX_UPSAMPLE = 8
+
+MAX_RESOLUTION = 16384
+
+
+def _resolution(text: str) -> tuple[int, int]:
+    try:
+        height, width = (int(v) for v in text.lower().split("x"))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"resolution {text!r} is not HxW, e.g. 240x320") from None
+    if min(height, width) < 8:  # one 8x8 cell at least
+        raise argparse.ArgumentTypeError(f"resolution {text!r} needs H and W of at least 8 px")
+    if max(height, width) > MAX_RESOLUTION:
+        raise argparse.ArgumentTypeError(
+            f"resolution {text!r} exceeds {MAX_RESOLUTION} px on a side"
+        )
+    return height, width
+
+
+def _radius(text: str) -> float:
+    """An NMS radius: a finite number of pixels >= 0 (``1e9`` is fine: one point survives)."""
+    try:
+        value = float(text)
+    except ValueError:
+        value = math.nan
+    if not (math.isfinite(value) and value >= 0):
+        raise argparse.ArgumentTypeError(f"{text!r} is not a radius in px (a finite number >= 0)")
+    return value
+
+
+def _upsample(text: str) -> int:
+    value = _positive(text)
+    if value > MAX_UPSAMPLE:
+        raise argparse.ArgumentTypeError(f"{text!r} is above {MAX_UPSAMPLE}")
+    return value
+
+
+def _integer_at_least(minimum: int, kind: str):
+    """An argparse ``type`` accepting integers >= ``minimum``, with a one-line message."""
+
+    def parse(text: str) -> int:
+        try:
+            value = int(text)
+        except ValueError:
+            value = minimum - 1
+        if value < minimum:
+            raise argparse.ArgumentTypeError(f"{text!r} is not a {kind} integer")
+        return value
+
+    return parse
+
+
+_positive = _integer_at_least(1, "positive")
+_non_negative = _integer_at_least(0, "non-negative")
+
+
+def _zoom_range(text: str) -> tuple[float, float]:
+    """``MIN,MAX`` zoom factors for make-pairs (``evaluation.pairs.ZOOM_LIMITS``)."""
+    from usp_jax.evaluation.pairs import ZOOM_LIMITS
+
+    try:
+        low, high = (float(v) for v in text.split(","))
+    except ValueError:
+        low = high = math.nan
+    if not ZOOM_LIMITS[0] <= low <= high <= ZOOM_LIMITS[1]:
+        raise argparse.ArgumentTypeError(
+            f"{text!r} is not MIN,MAX with {ZOOM_LIMITS[0]:g} <= MIN <= MAX <= {ZOOM_LIMITS[1]:g}"
+        )
+    return low, high
+
+
+def _add_any_scale(parser) -> None:
+    parser.add_argument(
+        "--any-scale",
+        action="store_true",
+        help="match across zoom: detect on an image pyramid too (steps of 1/sqrt(2) down to a"
+        " 64 px side, about 1.9x the compute); keypoints get sizes from their level",
+    )
+
+
+def _add_upsample(parser) -> None:
+    # SIFT doubles its input for the same reason: the positions come back finer (RESULTS.md).
+    parser.add_argument(
+        "--upsample",
+        type=_upsample,
+        default=1,
+        metavar="S",
+        help="run the network on the image enlarged S times (default 1, the"
+        " paper's detector; 2: finer keypoints for 4x the compute)",
+    )
+
+
+def _add_any_rotation(parser) -> None:
+    parser.add_argument(
+        "--any-rotation",
+        action="store_true",
+        help="match across any in-plane rotation: rotation-invariant weights (--guide) estimate"
+        " how far image 2 is turned, and the model matches it turned back",
+    )
+    parser.add_argument(
+        "--guide",
+        default=None,
+        help="--any-rotation's rotation-invariant weights: a shipped name, a .npz weights file"
+        " or a training workdir (default: the shipped rotation weights)",
+    )
+
+
+def _add_weights_name(parser) -> None:
+    parser.add_argument(
+        "--weights",
+        metavar="NAME",
+        help=f"shipped weights by name: {', '.join(PRETRAINED)} (default {DEFAULT_PRETRAINED},"
+        " the best on the held-out pairs; README's 'Which weights' table says which suits what)",
+    )
+
+
+def _add_checkpoint(parser) -> None:
+    group = parser.add_mutually_exclusive_group()
+    group.add_argument(
+        "--checkpoint",
+        metavar="PATH",
+        help="training workdir, one of its checkpoints, or a .npz weights file"
+        " from `usp-jax export --save-weights` (default: the shipped weights)",
+    )
+    _add_weights_name(group)
+
+
+def _add_nms_radius(parser, default: float, help: str) -> None:
+    """``--nms``: the detector's NMS radius in px, any finite value >= 0 (detect, match, export)."""
+    parser.add_argument("--nms", type=_radius, default=default, help=help)
+
+
+def _add_max_side(parser, help: str) -> None:
+    """``--max-side``: the longest side the network sees (``Detector``'s max_side; detect, match)."""
+    parser.add_argument("--max-side", type=_non_negative, default=MAX_SIDE, metavar="PX", help=help)
+
+
+class _HelpFormatter(argparse.HelpFormatter):
+    """argparse's help with every option's default shown: a help text that does not state its
+    default itself gets "(default: X)" appended (a flag's False and an unset None are no default)."""
+
+    def _get_help_string(self, action) -> str:
+        text = action.help or ""
+        default = action.default
+        if (
+            action.option_strings
+            and default not in (None, False, argparse.SUPPRESS)
+            and "default" not in text
+        ):
+            text += " (default: %(default)s)"
+        return text
+
+
+class _Parser(argparse.ArgumentParser):
+    """argparse with its errors in one line (the usage is one ``-h`` away), exit status 2, and
+    every option's default in its help (:class:`_HelpFormatter`, subcommands' parsers too)."""
+
+    def __init__(self, *args, **kwargs):
+        kwargs.setdefault("formatter_class", _HelpFormatter)
+        super().__init__(*args, **kwargs)
+
+    def error(self, message: str):
+        text = " ".join(message.split())
+        self.exit(2, f"{self.prog}: error: {text} (see {self.prog} -h)\n")
