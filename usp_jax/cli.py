@@ -59,6 +59,18 @@ def _check_output_file(path: str | None, what: str) -> None:
         raise ValueError(f"{what} {path} is not writable")
 
 
+def _figure_file(path: str | None, what: str) -> str | None:
+    """The file a figure option writes (a bare name gets ``.png``, as matplotlib adds it),
+    checked like any output file, so that the path printed is the path written."""
+    if not path:
+        return path
+    from usp_jax.evaluation.plotting import figure_path
+
+    target = str(figure_path(path))
+    _check_output_file(target, what)
+    return target
+
+
 def _check_output_folder(path: str | None, what: str) -> None:
     """Raises ValueError unless ``path`` is, or can be made as, a writable folder."""
     from usp_jax.training.workdir import folder_problem
@@ -138,10 +150,11 @@ def _distributed(args) -> bool:
 
 
 def cmd_evaluate(args) -> None:
-    from usp_jax.evaluation import plotting, protocol
+    from usp_jax.evaluation import plotting, protocol, sequences
 
     _check_output_file(args.json, "--json")
     _check_output_folder(args.plots, "--plots")
+    sequences.scan_sequences(args.hpatches)  # every pair file checked, by name, before any work
     detector = None if args.baselines_only else _load_detector(args)
     height, width = args.res
     baselines = [name.strip() for name in args.baselines.split(",") if name.strip()]
@@ -168,6 +181,8 @@ def cmd_evaluate(args) -> None:
         path = plotting.plot_example_pair(
             methods[0], args.hpatches, args.plots, args.res, args.top, args.nms
         )
+        keypoints = path.with_name(path.name.removesuffix("_matches.png") + "_keypoints.png")
+        print(f"wrote {keypoints}")
         print(f"wrote {path}")
 
 
@@ -216,7 +231,7 @@ def cmd_detect(args) -> None:
     from usp_jax.evaluation import plotting
     from usp_jax.inference.images import read_image
 
-    _check_output_file(args.out, "--out")
+    args.out = _figure_file(args.out, "--out")
     _check_output_file(args.json, "--json")
     detector = _load_detector(args, nms_radius=args.nms, max_side=args.max_side)
     features = detector.detect(image := read_image(args.image), top_n=args.top)
@@ -243,7 +258,7 @@ def cmd_match(args) -> None:
     from usp_jax.inference import turning
     from usp_jax.inference.images import read_image
 
-    _check_output_file(args.out, "--out")
+    args.out = _figure_file(args.out, "--out")
     _check_output_file(args.json, "--json")
     detector = _load_detector(args, nms_radius=args.nms, max_side=args.max_side)
     guide = _guide(args, max_side=args.max_side)
@@ -261,11 +276,23 @@ def cmd_match(args) -> None:
         f" {int(matching.inliers.sum())} RANSAC inliers"
         f" ({matching_lib.RANSAC_THRESHOLD:g} px)"
     )
+    # An estimate from too few inliers is a chance fit: reported as none (it stays in the JSON).
+    homography = matching.homography if matching.reliable else None
     if matching.homography is None:
         print("no homography: fewer than 4 matches, or RANSAC found none")
+    elif homography is None:
+        print(
+            f"no reliable homography: {int(matching.inliers.sum())} RANSAC inliers, fewer than"
+            f" the {matching_lib.MIN_INLIERS} a homography needs to mean anything"
+        )
+        print(
+            "usp-jax match: warning: no reliable homography; the images may not show the same"
+            " scene, or show too little texture",
+            file=sys.stderr,
+        )
     else:
         print("homography image1 -> image2:")
-        print(np.array2string(matching.homography, precision=6, suppress_small=True))
+        print(np.array2string(homography, precision=6, suppress_small=True))
     if args.out:
         plotting.plot_matches(
             image1,
@@ -275,16 +302,19 @@ def cmd_match(args) -> None:
             matching.matches,
             matching.inliers,
             None,
-            matching.homography,
+            homography,
             args.out,
         )
         print(f"wrote {args.out}")
     if args.json:
-        homography = None if matching.homography is None else matching.homography.tolist()
+        estimate = None if matching.homography is None else matching.homography.tolist()
         pathlib.Path(args.json).write_text(
             json.dumps(
                 {
-                    "homography": homography,
+                    "homography": None if homography is None else homography.tolist(),
+                    "reliable": matching.reliable,
+                    "min_inliers": matching_lib.MIN_INLIERS,
+                    "ransac_estimate": estimate,
                     "matches": matching.matches.tolist(),
                     "inliers": matching.inliers.tolist(),
                     "keypoints1": features1.keypoints.tolist(),
@@ -303,6 +333,8 @@ def cmd_export(args) -> None:
 
     if not (args.save_weights or args.artifact):
         raise ValueError("nothing to export: give --save-weights FILE.npz and/or --artifact FILE")
+    if args.save_weights:  # what is written and printed: NAME.npz for a NAME without .npz
+        args.save_weights = str(weights.weights_file(args.save_weights))
     _check_output_file(args.save_weights, "--save-weights")
     _check_output_file(args.artifact, "--artifact")
     detector = _load_detector(args)

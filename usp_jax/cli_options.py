@@ -8,6 +8,8 @@ import pathlib
 import tempfile
 
 from usp_jax.cli_arguments import (  # noqa: F401 (cli_track builds on them too)
+    MAX_RESOLUTION,
+    MAX_UPSAMPLE,
     _add_any_rotation,
     _add_any_scale,
     _add_checkpoint,
@@ -22,6 +24,58 @@ from usp_jax.cli_arguments import (  # noqa: F401 (cli_track builds on them too)
     _zoom_range,
 )
 from usp_jax.inference.detector import MAX_SIDE
+
+#: The range of every numeric option, by flag: checked where it is parsed, before anything runs,
+#: and shown in its help (tests sweep every option with absurd values). Beyond them a command
+#: runs for hours (RANSAC orders, repeats), outgrows any memory (points, batch, sides) or means
+#: nothing (angles, views, seeds).
+RANGES: dict[str, tuple[float, float]] = {
+    "--steps": (1, 10**9),
+    "--num-processes": (1, 65536),
+    "--process-id": (0, 65535),
+    "--init-timeout": (1, 86400),
+    "--heartbeat-timeout": (1, 86400),
+    "--top": (1, 100_000),
+    "--ransac-orders": (1, 1000),
+    "--upsample": (1, MAX_UPSAMPLE),
+    "--views": (2, 6),  # the HPatches layout: images 1 to 6
+    "--seed": (0, 2**32 - 1),
+    "--rotation": (0, 180),
+    "--rotation-angles": (-180, 180),
+    "--batch": (1, 1024),
+    "--repeats": (1, 1000),
+    "--nms": (0, 100_000),  # past any image's diagonal one point survives
+    "--max-side": (0, MAX_RESOLUTION),
+    "--every": (1, 10**6),
+    "--max-frames": (1, 10**9),
+}
+
+
+def _in_range(parse, low: float, high: float):
+    """``parse`` (an argparse ``type``) that also refuses values outside [low, high]."""
+
+    def check(text: str):
+        value = parse(text)
+        if not low <= value <= high:  # NaN fails too
+            raise argparse.ArgumentTypeError(f"{text!r} is outside [{low}, {high}]")
+        return value
+
+    check.__name__ = getattr(parse, "__name__", "value")  # argparse's "invalid int value"
+    return check
+
+
+def _apply_ranges(parser: argparse.ArgumentParser) -> None:
+    """Bounds every option of ``RANGES`` in every subcommand and states the range in its help."""
+    commands = [a for a in parser._actions if isinstance(a, argparse._SubParsersAction)]
+    for subparser in (p for action in commands for p in action.choices.values()):
+        for action in subparser._actions:
+            flag = next((s for s in action.option_strings if s in RANGES), None)
+            if flag is None or action.type is None:
+                continue
+            low, high = RANGES[flag]
+            action.type = _in_range(action.type, low, high)
+            if action.help and action.choices is None and f"{low} to " not in action.help:
+                action.help += f" (from {low} to {high})"
 
 
 def _add_train(subparsers) -> None:
@@ -147,7 +201,8 @@ def _add_make_pairs(subparsers) -> None:
         "--out",
         required=True,
         metavar="DIR",
-        help="folder for the v_*/i_* scenes (1.ppm ... N.ppm and the homographies H_1_k)",
+        help="folder for the v_*/i_* scenes (1.ppm ... N.ppm and the homographies H_1_k): new,"
+        " empty, or an earlier make-pairs output (it holds make-pairs.json), which is replaced",
     )
     p.add_argument(
         "--size",
@@ -347,6 +402,7 @@ def build_parser() -> argparse.ArgumentParser:
         _add_track,
     ):
         add(sub)
+    _apply_ranges(parser)
     return parser
 
 

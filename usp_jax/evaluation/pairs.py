@@ -16,12 +16,21 @@ square region of the photo around image 1 that holds a turned view at any angle,
 show real content too, and H_1_k stays exact.
 
 Output is deterministic for a seed (and a given order of the source list).
+
+Nothing of the user's is overwritten or mixed into: the output folder must be new, empty, or an
+earlier make-pairs output, recognised by its manifest ``make-pairs.json`` (the settings, the
+source photos and the scenes it holds). A re-run over an earlier output replaces it: its scenes
+are rewritten or removed, and any entry the manifest does not name makes the run refuse. Every
+scene is written into a temporary folder and renamed into place once complete, so a failed or
+killed run leaves no half-made scene; the manifest says ``"complete": false`` until the run ends.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import json
 import math
+import shutil
 import warnings
 from collections.abc import Iterable, Sequence
 from pathlib import Path
@@ -49,6 +58,13 @@ HARDEST_VIEW = HomographyConfig(
     patch_ratio=0.75, scaling=0.2, max_angle=math.pi / 6, perspective=0.3, num_candidates=256
 )
 
+
+#: The manifest of a make-pairs output folder (module docstring).
+MANIFEST = "make-pairs.json"
+#: Suffix of a scene's folder while it is written; renamed to the scene's name once complete.
+_PARTIAL = ".partial"
+#: Seeds are 32-bit: jax.random.PRNGKey and numpy's generators take them alike.
+MAX_SEED = 2**32 - 1
 
 # Seeds the drawn rotation angles' generator together with (seed, photo index): a stream of its own, so
 # the illumination scenes' generator, seeded by (seed, photo index), draws what it drew before.
@@ -173,14 +189,71 @@ def _illumination_change(
 def _write_scene(
     scene: Path, views: Sequence[np.ndarray], homographies: Sequence[np.ndarray]
 ) -> None:
-    """Writes uint8 RGB views as 1.ppm.. (BGR on disk) and homographies[k] (image 1 -> k+2) as H_1_k."""
-    scene.mkdir(parents=True, exist_ok=True)
-    for index, view in enumerate(views, start=1):
-        path = scene / f"{index}.ppm"
-        if not cv2.imwrite(str(path), cv2.cvtColor(view, cv2.COLOR_RGB2BGR)):
-            raise OSError(f"could not write {path}")
-    for index, homography in enumerate(homographies, start=2):
-        np.savetxt(scene / f"H_1_{index}", homography)
+    """Writes uint8 RGB views as 1.ppm.. (BGR on disk) and homographies[k] (image 1 -> k+2) as H_1_k,
+    into a temporary folder renamed to ``scene`` once complete (replacing an earlier one)."""
+    partial = scene.with_name("." + scene.name + _PARTIAL)  # hidden: never read as a scene
+    shutil.rmtree(partial, ignore_errors=True)
+    partial.mkdir(parents=True)
+    try:
+        for index, view in enumerate(views, start=1):
+            path = partial / f"{index}.ppm"
+            if not cv2.imwrite(str(path), cv2.cvtColor(view, cv2.COLOR_RGB2BGR)):
+                raise OSError(f"could not write {path}")
+        for index, homography in enumerate(homographies, start=2):
+            np.savetxt(partial / f"H_1_{index}", homography)
+    except BaseException:
+        shutil.rmtree(partial, ignore_errors=True)
+        raise
+    if scene.exists():
+        shutil.rmtree(scene)
+    partial.rename(scene)
+
+
+def _own_name(name: object) -> bool:
+    """Whether a manifest's scene name is one make-pairs writes (never a path elsewhere)."""
+    return isinstance(name, str) and name[:2] in ("v_", "i_") and Path(name).name == name
+
+
+def earlier_scenes(out_dir: str | Path) -> list[str]:
+    """The scenes of an earlier make-pairs run in ``out_dir`` (none for a new or empty folder).
+
+    Raises ValueError when the folder holds anything else: data without a manifest, or an entry
+    its manifest does not name. Scenes' temporary folders (``.NAME.partial``) count as its own.
+    """
+    out_dir = Path(out_dir)
+    if not out_dir.is_dir():
+        return []
+    entries = sorted(p.name for p in out_dir.iterdir())
+    if not entries:
+        return []
+    manifest = out_dir / MANIFEST
+    if MANIFEST not in entries:
+        raise ValueError(
+            f"{out_dir} holds {len(entries)} entries (e.g. {entries[0]}) and is not a make-pairs"
+            f" output (no {MANIFEST}); give a new or empty folder"
+        )
+    try:
+        scenes = json.loads(manifest.read_text())["scenes"]
+    except (OSError, ValueError, TypeError, KeyError) as error:
+        raise ValueError(f"{manifest} is not a readable make-pairs manifest ({error})") from None
+    if not isinstance(scenes, list) or not all(_own_name(name) for name in scenes):
+        raise ValueError(f"{manifest}: its scenes are not a list of v_*/i_* folder names")
+    own = {MANIFEST, *scenes, *("." + name + _PARTIAL for name in scenes)}
+    foreign = [name for name in entries if name not in own]
+    if foreign:
+        raise ValueError(
+            f"{out_dir / foreign[0]} was not written by the make-pairs run of {manifest};"
+            " make-pairs replaces only its own output: move it or give another folder"
+        )
+    return scenes
+
+
+def _write_manifest(out_dir: Path, settings: dict, scenes: Sequence[str], complete: bool) -> None:
+    """The manifest (module docstring), replaced atomically."""
+    partial = out_dir / ("." + MANIFEST + _PARTIAL)
+    record = {"made_by": "usp-jax make-pairs", "complete": complete, **settings}
+    partial.write_text(json.dumps({**record, "scenes": sorted(scenes)}, indent=1) + "\n")
+    partial.replace(out_dir / MANIFEST)
 
 
 def make_pairs(
@@ -199,8 +272,10 @@ def make_pairs(
 
     Args:
       images: a folder (its image files, sorted by name) or a list of image paths.
-      out_dir: where the scene folders go (created; existing scenes of the same name are overwritten).
-      seed: the output is a deterministic function of seed, the photos and their order.
+      out_dir: where the scene folders go: a new or empty folder, or an earlier output of
+        make_pairs, which is replaced (module docstring; anything else is refused).
+      seed: 0 to 2**32 - 1; the output is a deterministic function of seed, the photos and their
+        order.
       size: (H, W) of every generated image. Photos are resized to cover (H, W) / patch_ratio first
         (enlarged when smaller, so every view is a crop at roughly the photo's own scale; with rotation,
         the larger square below).
@@ -217,8 +292,9 @@ def make_pairs(
       The scene folders written, in order.
     Raises:
       FileNotFoundError: the folder (or a listed file) does not exist, holds no image, or none is readable.
-      ValueError: bad num_views/kinds/size/rotation, or two photos with the same stem (their scenes would
-        collide).
+      ValueError: bad seed/num_views/kinds/size/rotation, two photos with the same stem (their scenes
+        would collide), or an output folder holding other data. All of them are checked before
+        anything is written.
     Unreadable photos are skipped with a warning naming them.
     """
     height, width = size
@@ -228,10 +304,23 @@ def make_pairs(
         raise ValueError(f"num_views must be 2 to 6 (HPatches layout), got {num_views}")
     if not kinds or set(kinds) - {"v", "i"}:
         raise ValueError(f"kinds must be a non-empty subset of ('v', 'i'), got {tuple(kinds)}")
+    integer = isinstance(seed, (int, np.integer)) and not isinstance(seed, bool)
+    if not integer or not 0 <= seed <= MAX_SEED:
+        raise ValueError(f"seed must be an integer from 0 to {MAX_SEED}, got {seed!r}")
     _check_rotation(rotation, rotation_angles)
     rotated = rotation is not None or rotation_angles is not None
     sources = _list_sources(images)
     out_dir = Path(out_dir)
+    earlier = earlier_scenes(out_dir)
+    settings = {
+        "seed": int(seed),
+        "size": [height, width],
+        "num_views": num_views,
+        "kinds": list(kinds),
+        "rotation": rotation,
+        "rotation_angles": None if rotation_angles is None else list(rotation_angles),
+        "sources": [str(path) for path in sources],
+    }
     # The region of the photo views are cut from, in the [height, width] frame in which sample_homography
     # works: the frame itself, or with rotation a window around it that holds REFERENCE_VIEW's patch,
     # enlarged to the middle of the views' scale range, turned by any angle. A larger window would make
@@ -257,6 +346,7 @@ def make_pairs(
         )
     strengths = [(k - 1) / (num_views - 1) for k in range(2, num_views + 1)]  # of images 2..N
     configs = [REFERENCE_VIEW] + [_view_config(strength) for strength in strengths]
+    planned = [f"{kind}_{path.stem}" for path in sources for kind in ("v", "i") if kind in kinds]
     scenes: list[Path] = []
     for index, path in enumerate(
         tqdm(sources, desc="make-pairs", unit="photo", disable=not progress)
@@ -310,6 +400,11 @@ def make_pairs(
             )
             for frame in frames
         ]
+        if not scenes:  # the first scene: only now is anything written
+            out_dir.mkdir(parents=True, exist_ok=True)
+            # Until the run ends the manifest names every scene it may leave, so that a re-run
+            # after a failure recognises them all.
+            _write_manifest(out_dir, settings, set(earlier) | set(planned), complete=False)
         if "v" in kinds:
             reference_inverse = np.linalg.inv(frames[0])
             homographies = [frame @ reference_inverse for frame in frames[1:]]
@@ -324,4 +419,8 @@ def make_pairs(
             scenes.append(out_dir / f"i_{path.stem}")
     if not scenes:
         raise FileNotFoundError(f"none of the {len(sources)} source images could be read")
+    written = {scene.name for scene in scenes}
+    for name in set(earlier) - written:  # an earlier run's scene this run does not make
+        shutil.rmtree(out_dir / name, ignore_errors=True)
+    _write_manifest(out_dir, settings, written, complete=True)
     return scenes

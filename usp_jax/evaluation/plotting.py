@@ -31,8 +31,22 @@ PANEL_INCHES = 5.0
 HISTOGRAM_INCHES = (7.0, 4.5)
 
 
-def _save(figure: Figure, path: str | Path) -> Path:
+def figure_path(path: str | Path) -> Path:
+    """The file a figure saved as ``path`` lands in: matplotlib adds ``.png`` to a name without
+    a suffix. Raises ValueError, before any work, for a suffix matplotlib cannot write."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+
     path = Path(path)
+    if not path.suffix:
+        return path.with_name(path.name + ".png")
+    if path.suffix[1:].lower() not in FigureCanvasAgg.get_supported_filetypes():
+        raise ValueError(f"{path}: figures cannot be written as {path.suffix}; use .png or .pdf")
+    return path
+
+
+def _save(figure: Figure, path: str | Path) -> Path:
+    """Saves ``figure``; returns the path written (:func:`figure_path`)."""
+    path = figure_path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     figure.savefig(path, dpi=DPI)
     return path

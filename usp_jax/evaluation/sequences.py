@@ -65,12 +65,20 @@ def _scene_images(folder: Path) -> tuple[dict[int, Path], str] | None:
 
 
 def _read_homography(path: Path) -> np.ndarray:
+    """The float64 [3, 3] homography in ``path``; raises ValueError naming the file unless it is
+    a finite, invertible 3x3 matrix (every metric maps points both ways)."""
     try:
         homography = np.loadtxt(path, dtype=np.float64)
     except ValueError as error:
         raise ValueError(f"{path}: not a plain-text 3x3 homography ({error})") from None
-    if homography.shape != (3, 3) or not np.all(np.isfinite(homography)):
-        raise ValueError(f"{path}: expected a finite 3x3 homography, got shape {homography.shape}")
+    if homography.shape != (3, 3):
+        raise ValueError(f"{path}: expected a 3x3 homography, got shape {homography.shape}")
+    if not np.all(np.isfinite(homography)):
+        raise ValueError(f"{path}: the homography holds NaN or infinite values")
+    # Rank by SVD with numpy's default tolerance: all-zero and collapsing matrices fail alike.
+    rank = np.linalg.matrix_rank(homography)
+    if rank < 3:
+        raise ValueError(f"{path}: the homography is singular (rank {rank}), not invertible")
     return homography
 
 
@@ -113,7 +121,8 @@ def scan_sequences(root: str | Path) -> list[PairFiles]:
     skipped unless named like an HPatches scene.
 
     Raises FileNotFoundError for a missing root or a scene without image 1 or an H file,
-    ValueError for a root without scenes or an unreadable H file.
+    ValueError for a root without scenes or an H file that is unreadable, not finite or singular
+    (naming the file), all before any image is read.
     """
     root = Path(root)
     if not root.is_dir():
@@ -121,7 +130,8 @@ def scan_sequences(root: str | Path) -> list[PairFiles]:
     if _scene_images(root) is not None:
         return _scene_pairs(root)
     pairs = []
-    for folder in sorted(p for p in root.iterdir() if p.is_dir()):
+    # Hidden folders are not scenes (make-pairs writes a scene as .NAME.partial first).
+    for folder in sorted(p for p in root.iterdir() if p.is_dir() and not p.name.startswith(".")):
         if _split_of(folder.name) != "other" or _scene_images(folder) is not None:
             pairs.extend(_scene_pairs(folder))
     if not pairs:

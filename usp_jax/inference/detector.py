@@ -32,6 +32,7 @@ from usp_jax.core.cpu_kernels import compiler_options
 from usp_jax.core.model import CELL, ModelConfig, UnsuperPoint
 from usp_jax.inference import weights
 from usp_jax.inference.features import Features
+from usp_jax.inference.memory import check_fits
 from usp_jax.inference.nms import NEIGHBOUR_REACH, radius_nms
 
 # ---------------------------------------------------------------------------------------------
@@ -344,6 +345,9 @@ class Detector:
 
     def _call(self, padded: np.ndarray, sizes: np.ndarray, top_n: int | None) -> list[Features]:
         top_n = self.top_n if top_n is None else _check_top_n(top_n)
+        # Before compiling: an image too large for memory is one line naming max_side, not an
+        # abort inside XLA.
+        check_fits(self.model_config, padded.shape, self.upsample)
         return unbatch(self._forward(self.variables, padded, sizes, top_n=top_n))
 
 

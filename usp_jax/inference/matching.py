@@ -15,6 +15,11 @@ from usp_jax.inference.features import Features
 #: RANSAC settings of the protocol for ``cv2.findHomography``.
 RANSAC_THRESHOLD = 3.0
 RANSAC_MAX_ITERS = 5000
+#: Fewest RANSAC inliers of a homography that means something. Four always fit one exactly,
+#: and images of different scenes (or a blank one) reach a few more by chance; on the design
+#: pairs (experiments/RESULTS.md, "Reliable homographies") such chance fits stayed under this,
+#: true pairs far above it.
+MIN_INLIERS = 15
 
 
 class Matching(NamedTuple):
@@ -28,6 +33,12 @@ class Matching(NamedTuple):
     matches: np.ndarray
     inliers: np.ndarray
     homography: np.ndarray | None
+
+    @property
+    def reliable(self) -> bool:
+        """Whether the homography rests on at least ``MIN_INLIERS`` inliers; when not, it is
+        what RANSAC fits to chance matches and should not be used."""
+        return self.homography is not None and int(self.inliers.sum()) >= MIN_INLIERS
 
 
 def nearest_neighbours(

@@ -41,8 +41,18 @@ _CONFIG_KEY = "model_config"
 _SEPARATOR = "/"
 
 
-def save_weights(path: str | pathlib.Path, variables: dict, model_config: ModelConfig) -> None:
-    """Write ``{"params", "batch_stats"}`` as one float16 ``.npz`` plus the ModelConfig as JSON.
+def weights_file(path: str | pathlib.Path) -> pathlib.Path:
+    """The file :func:`save_weights` writes for ``path``: ``.npz`` is added to a name without
+    it, as numpy does, and a weights file is told from a training workdir by that suffix."""
+    path = pathlib.Path(path)
+    return path if path.name.endswith(".npz") else path.with_name(path.name + ".npz")
+
+
+def save_weights(
+    path: str | pathlib.Path, variables: dict, model_config: ModelConfig
+) -> pathlib.Path:
+    """Write ``{"params", "batch_stats"}`` as one float16 ``.npz`` plus the ModelConfig as JSON;
+    returns the file written (:func:`weights_file`).
 
     Float16 halves the file; inference casts back to float32. Raises ValueError instead of
     writing a value that float16 cannot hold (|x| > 65504), so no weight is silently lost.
@@ -57,7 +67,9 @@ def save_weights(path: str | pathlib.Path, variables: dict, model_config: ModelC
             raise ValueError(f"weight {key} does not fit in float16 (|x| > {largest:g})")
     arrays = {key: np.asarray(value, dtype=np.float16) for key, value in flat.items()}
     config_json = json.dumps(dataclasses.asdict(model_config))
+    path = weights_file(path)
     np.savez_compressed(path, **arrays, **{_CONFIG_KEY: np.array(config_json)})
+    return path
 
 
 def load_weights(path: str | pathlib.Path) -> tuple[ModelConfig, dict]:
@@ -153,9 +165,32 @@ def read_checkpoint(path: str | pathlib.Path) -> tuple[dict, dict]:
     """(the run's config as a dict, ``{"params", "batch_stats"}``) of the checkpoint under
     ``path`` (:func:`resolve_checkpoint`), on this process's first device, whatever devices the
     run that saved it trained on. Reads only what inference needs."""
+    directory, step = resolve_checkpoint(path)
+    if not (directory / str(step) / "state").is_dir():
+        raise ValueError(_damaged(directory, step, "it has no state/ folder"))
+    try:
+        return _read_step(directory, step)
+    except Exception as error:  # damaged files: orbax's errors name neither file nor step
+        first = str(error).strip().splitlines()
+        problem = f"{type(error).__name__}: {first[0]}" if first else type(error).__name__
+        raise ValueError(_damaged(directory, step, problem)) from error
+
+
+def _damaged(directory: pathlib.Path, step: int, problem: str) -> str:
+    """The one line for an unreadable checkpoint: its folder, what is wrong, and the step
+    before it that a user may load instead (as ``train`` reports a damaged checkpoint)."""
+    earlier = [int(p.name) for p in directory.iterdir() if p.name.isdigit() and int(p.name) < step]
+    instead = (
+        f"; the checkpoint before it is {directory / str(max(earlier))}, load that one or retrain"
+        if earlier
+        else "; there is no earlier checkpoint"
+    )
+    return f"checkpoint step {step} ({directory / str(step)}) is damaged: {problem}{instead}"
+
+
+def _read_step(directory: pathlib.Path, step: int) -> tuple[dict, dict]:
     import orbax.checkpoint as ocp
 
-    directory, step = resolve_checkpoint(path)
     mngr = ocp.CheckpointManager(
         directory,
         item_handlers={
@@ -181,6 +216,22 @@ def load_checkpoint(path: str | pathlib.Path) -> tuple[ModelConfig, dict]:
     "batch_stats"})`` of the run in ``path`` (a workdir, its ``checkpoints/`` or one step)."""
     config, variables = read_checkpoint(path)
     return settings.from_dict(config["model"], ModelConfig), variables
+
+
+def load_named(spec: str | pathlib.Path) -> tuple[ModelConfig, dict]:
+    """Weights by what a user types: a shipped name (``PRETRAINED``), a ``.npz`` weights file, or
+    a training workdir (its ``checkpoints/`` or one step). Raises FileNotFoundError or ValueError
+    in one line, as :func:`load_weights` and :func:`load_checkpoint` do."""
+    if str(spec) in PRETRAINED:
+        return load_weights(pretrained_path(str(spec)))
+    if pathlib.Path(spec).suffix == ".npz":
+        return load_weights(spec)
+    if not pathlib.Path(spec).exists():
+        raise FileNotFoundError(
+            f"{spec} is neither shipped weights ({', '.join(PRETRAINED)}), a .npz weights file"
+            " nor a training workdir"
+        )
+    return load_checkpoint(spec)
 
 
 def pretrained_path(name: str):

@@ -12,13 +12,16 @@ number, so a resumed run sees exactly the randomness an uninterrupted one would.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import logging
 import os
 import pathlib
+import re
 import shutil
 import time
 from collections.abc import Iterator
+from typing import Any
 
 import jax
 import numpy as np
@@ -60,17 +63,38 @@ def _first_line(error: BaseException) -> str:
 
 
 def _write_failed(error: OSError, what: str, workdir: pathlib.Path, mngr) -> WorkdirError:
-    latest = mngr.latest_step() if mngr is not None else None
+    latest = _last_complete_step(workdir / "checkpoints") if mngr is not None else None
     where = error.filename or workdir
     kept = f"; the last complete checkpoint is step {latest}" if latest is not None else ""
+    if mngr is not None and latest is None:
+        kept = "; no checkpoint is complete yet"
     return WorkdirError(f"{what}: {where}: {error.strerror or _first_line(error)}{kept}")
+
+
+#: A checkpoint being written: orbax saves step N into N.orbax-checkpoint-tmp..., then renames it.
+_SAVING = re.compile(r"(?:^|/)(\d+)\.orbax-checkpoint-tmp")
+
+
+def _failed_step(error: OSError, done: int) -> int:
+    """The step whose write failed: the checkpoint named in the error's path, else ``done``.
+    Orbax saves in the background, so step 8's failed save may surface while step 12 runs."""
+    saving = _SAVING.search(str(error.filename or ""))
+    return int(saving.group(1)) if saving else done
+
+
+def _last_complete_step(directory: pathlib.Path) -> int | None:
+    """The latest checkpoint on disk: orbax renames a step's folder to its number only once the
+    step is complete (the manager's own record may list a save that failed afterwards)."""
+    try:
+        steps = [int(p.name) for p in directory.iterdir() if p.name.isdigit() and p.is_dir()]
+    except OSError:
+        return None
+    return max(steps, default=None)
 
 
 def _os_error_in(error: BaseException) -> OSError | None:
     """The OSError behind ``error``, or None. Orbax's writes (TensorStore) fail with a
     ValueError that carries the system's error code in its text: ``[os_error_code='28']``."""
-    import re
-
     seen = set()
     while error is not None and id(error) not in seen:
         seen.add(id(error))
@@ -118,25 +142,13 @@ def fit(
     exit (the CLI does, ``distributed.leave_after_failure``): its checkpoint manager is left
     as it is, because closing it waits on processes that are gone.
     """
-    from tqdm.auto import tqdm
-
-    from usp_jax.training import checkpoint, data
+    from usp_jax.training import data
 
     workdir = pathlib.Path(workdir).expanduser().absolute()
     num_steps = config.num_steps if num_steps is None else num_steps
     check_config(config)
-    if isinstance(num_steps, bool) or not isinstance(num_steps, (int, np.integer)) or num_steps < 1:
-        raise ValueError(f"num_steps must be a positive integer, got {num_steps!r}")
-    if distributed and not jax.distributed.is_initialized():
-        launch = distributed if isinstance(distributed, multihost.Launch) else multihost.Launch()
-        multihost.join(launch, config)
-    multihost.check_batch(config.batch_size, jax.process_count())
-    if config.batch_size % jax.device_count():
-        raise ValueError(
-            f"batch_size {config.batch_size} is not divisible by the {jax.device_count()} devices"
-        )
-    is_main = jax.process_index() == 0
-    single = jax.process_count() == 1
+    _check_num_steps(num_steps)
+    _join_and_check_devices(config, distributed)
     check_workdir_path(workdir)
     # What can reject the inputs (the --init weights, the data path) runs before the workdir is
     # written, so a bad argument leaves no half-made run behind to be resumed later.
@@ -148,16 +160,63 @@ def fit(
         process_index=jax.process_index(),
         process_count=jax.process_count(),
     )
+    run = _open_run(config, workdir, initial, allow_config_change)
+    step_fn = jit_train_step(config, run.mesh)
+    return _train_steps(config, run, step_fn, dataset, num_steps, progress)
+
+
+def _check_num_steps(num_steps) -> None:
+    if isinstance(num_steps, bool) or not isinstance(num_steps, (int, np.integer)) or num_steps < 1:
+        raise ValueError(f"num_steps must be a positive integer, got {num_steps!r}")
+
+
+def _join_and_check_devices(config: config_lib.Config, distributed) -> None:
+    """Joins the multi-process run ``distributed`` asks for (unless joined already); checks the
+    batch divides among the processes and devices."""
+    if distributed and not jax.distributed.is_initialized():
+        launch = distributed if isinstance(distributed, multihost.Launch) else multihost.Launch()
+        multihost.join(launch, config)
+    multihost.check_batch(config.batch_size, jax.process_count())
+    if config.batch_size % jax.device_count():
+        raise ValueError(
+            f"batch_size {config.batch_size} is not divisible by the {jax.device_count()} devices"
+        )
+
+
+@dataclasses.dataclass
+class _Run:
+    """A run whose workdir is locked and checked: the state to continue from (at ``start``),
+    its checkpoint manager, metrics writer and device mesh."""
+
+    workdir: pathlib.Path
+    state: TrainState
+    start: int
+    mngr: Any
+    lock: WorkdirLock | None
+    writer: MetricsWriter
+    mesh: Any
+
+    @property
+    def is_main(self) -> bool:
+        return jax.process_index() == 0
+
+
+def _open_run(
+    config: config_lib.Config,
+    workdir: pathlib.Path,
+    initial: TrainState,
+    allow_config_change: bool,
+) -> _Run:
+    """Creates or resumes the run in ``workdir``: takes the lock, checks the recorded config,
+    restores the latest checkpoint and (re)writes the record. On any failure everything opened
+    is closed again, and a workdir this call created is removed."""
+    from usp_jax.training import checkpoint
+
+    is_main = jax.process_index() == 0
     created = not workdir.exists()
     lock = mngr = None
     try:
-        try:
-            workdir.mkdir(parents=True, exist_ok=True)
-            lock = WorkdirLock(workdir) if is_main else None
-        except OSError as error:
-            raise WorkdirError(
-                f"workdir {workdir}: {error.strerror or _first_line(error)}"
-            ) from None
+        lock = _lock_workdir(workdir, is_main)
         previous = recorded_config(workdir)
         changes = {}
         if previous is not None:
@@ -165,34 +224,12 @@ def fit(
         # Every process has read the record before process 0 rewrites it below.
         _sync_processes("usp_jax: workdir checked")
         mesh = data_mesh()
-        replicated = NamedSharding(mesh, P())
-        batch_sharding = NamedSharding(mesh, P("data"))
-        state = jax.device_put(initial, replicated)
+        state = jax.device_put(initial, NamedSharding(mesh, P()))
         mngr = checkpoint.manager(workdir / "checkpoints", keep=config.keep_checkpoints)
-        if mngr.latest_step() is not None:
-            latest = mngr.latest_step()
-            try:
-                state = checkpoint.restore_state(mngr, state)
-            except Exception as error:  # a damaged checkpoint: one line, the cause chained
-                raise WorkdirError(
-                    f"cannot restore checkpoint step {latest} of {workdir}: {_first_line(error)}"
-                ) from error
-            log.info("resumed from step %d", int(state.step))
+        state = _restore_latest(mngr, state, workdir)
         start = int(state.step)
         if is_main:  # the run starts: only now is its record (re)written
-            if previous is None or previous != config:
-                config_lib.save(config, workdir / "config.json")
-            if changes:
-                with open(workdir / CONFIG_CHANGES_FILE, "a") as file:
-                    file.write(
-                        json.dumps(
-                            {
-                                "step": start,
-                                "changes": {k: [old, new] for k, (old, new) in changes.items()},
-                            }
-                        )
-                        + "\n"
-                    )
+            _write_record(workdir, config, previous, changes, start)
         writer = MetricsWriter(workdir, enabled=is_main)
     except BaseException as error:
         if mngr is not None:
@@ -207,23 +244,114 @@ def fit(
         if cause is not None and not isinstance(error, (WorkdirError, ConfigChanged)):
             raise _write_failed(cause, "cannot start the run", workdir, None) from error
         raise
-    step_fn = jit_train_step(config, mesh)
+    return _Run(workdir, state, start, mngr, lock, writer, mesh)
+
+
+def _lock_workdir(workdir: pathlib.Path, is_main: bool) -> WorkdirLock | None:
+    """Makes ``workdir`` and takes its lock (process 0 only); a failure is one line."""
+    try:
+        workdir.mkdir(parents=True, exist_ok=True)
+        return WorkdirLock(workdir) if is_main else None
+    except OSError as error:
+        raise WorkdirError(f"workdir {workdir}: {error.strerror or _first_line(error)}") from None
+
+
+def _restore_latest(mngr, state: TrainState, workdir: pathlib.Path) -> TrainState:
+    """``state`` restored from the latest complete checkpoint, or as it is when there is none."""
+    from usp_jax.training import checkpoint
+
+    latest = mngr.latest_step()
+    if latest is None:
+        return state
+    try:
+        state = checkpoint.restore_state(mngr, state)
+    except Exception as error:  # a damaged checkpoint: one line, the cause chained
+        raise WorkdirError(
+            f"cannot restore checkpoint step {latest} of {workdir}: {_first_line(error)}"
+        ) from error
+    log.info("resumed from step %d", int(state.step))
+    return state
+
+
+def _write_record(
+    workdir: pathlib.Path,
+    config: config_lib.Config,
+    previous: config_lib.Config | None,
+    changes: dict,
+    start: int,
+) -> None:
+    """(Re)writes ``config.json`` when the settings are new, and appends the changes a resume
+    was allowed to make to ``config_changes.jsonl``."""
+    if previous is None or previous != config:
+        config_lib.save(config, workdir / "config.json")
+    if changes:
+        with open(workdir / CONFIG_CHANGES_FILE, "a") as file:
+            file.write(
+                json.dumps(
+                    {
+                        "step": start,
+                        "changes": {k: [old, new] for k, (old, new) in changes.items()},
+                    }
+                )
+                + "\n"
+            )
+
+
+class _StepLog:
+    """What the loop reports every ``log_every`` steps: metrics rows, the progress bar's
+    postfix, and each collapse warning once."""
+
+    def __init__(self, config: config_lib.Config, writer: MetricsWriter, bar, dataset, start: int):
+        self.config, self.writer, self.bar, self.dataset = config, writer, bar, dataset
+        self.last_time, self.last_step = time.perf_counter(), start
+        self.warned: set[str] = set()
+
+    def write(self, done: int, metrics: dict, mngr) -> None:
+        """Checks and records the metrics (device arrays) of step ``done``."""
+        from usp_jax.training import data
+
+        metrics = {k: float(v) for k, v in jax.device_get(metrics).items()}
+        check_finite(metrics, done, mngr)
+        now = time.perf_counter()
+        steps_per_s = (done - self.last_step) / max(now - self.last_time, 1e-9)
+        self.last_time, self.last_step = now, done
+        metrics.update({"steps_per_s": steps_per_s, **data.stats(self.dataset)})
+        # Warn once per kind, after the first steps have had a chance to move away from init.
+        for what, message in (collapse_warnings(metrics) if done >= 100 else {}).items():
+            if what not in self.warned:
+                self.warned.add(what)
+                log.warning("step %d: %s", done, message)
+        self.writer.write(done, metrics)
+        self.bar.set_postfix(progress_postfix(metrics, steps_per_s, self.config.batch_size))
+
+
+def _train_steps(
+    config: config_lib.Config, run: _Run, step_fn, dataset, num_steps: int, progress: bool
+) -> TrainState:
+    """Runs the steps ``run.start`` .. ``num_steps`` of an opened run, logging and saving as the
+    config says; closes the run, also on failure (a failed write: ``WorkdirError``)."""
+    from tqdm.auto import tqdm
+
+    from usp_jax.training import checkpoint, data
+
+    single = jax.process_count() == 1
+    mngr, state = run.mngr, run.state
     bar = tqdm(
         total=num_steps,
-        initial=start,
-        disable=not (progress and is_main),
+        initial=run.start,
+        disable=not (progress and run.is_main),
         unit="step",
         dynamic_ncols=True,
     )
-    batches: Iterator[np.ndarray] = data.iterate(dataset, start)
-    last_log_time, last_log_step = time.perf_counter(), start
+    step_log = _StepLog(config, run.writer, bar, dataset, run.start)
+    batch_sharding = NamedSharding(run.mesh, P("data"))
+    batches: Iterator[np.ndarray] = data.iterate(dataset, run.start)
     previous_metrics = None
-    warned: set[str] = set()
-    done = start
+    done = run.start
     finished = False
     try:
         try:
-            for step in range(start, num_steps):
+            for step in range(run.start, num_steps):
                 local = next(batches)
                 images = jax.make_array_from_process_local_data(batch_sharding, local)
                 state, metrics = step_fn(state, images)
@@ -236,19 +364,7 @@ def fit(
                 if done % config.log_every and done % config.checkpoint_every and not last:
                     bar.update(1)
                     continue
-                metrics = {k: float(v) for k, v in jax.device_get(metrics).items()}
-                check_finite(metrics, done, mngr)
-                now = time.perf_counter()
-                steps_per_s = (done - last_log_step) / max(now - last_log_time, 1e-9)
-                last_log_time, last_log_step = now, done
-                metrics.update({"steps_per_s": steps_per_s, **data.stats(dataset)})
-                # Warn once per kind, after the first steps have had a chance to move away from init.
-                for what, message in (collapse_warnings(metrics) if done >= 100 else {}).items():
-                    if what not in warned:
-                        warned.add(what)
-                        log.warning("step %d: %s", done, message)
-                writer.write(done, metrics)
-                bar.set_postfix(progress_postfix(metrics, steps_per_s, config.batch_size))
+                step_log.write(done, metrics, mngr)
                 bar.update(1)
                 if done % config.checkpoint_every == 0 or last:
                     checkpoint.save(mngr, done, state, config)
@@ -269,7 +385,10 @@ def fit(
                 raise
             if single:
                 _settle(mngr)
-            raise _write_failed(cause, f"writing step {done} failed", workdir, mngr) from error
+            failed = _failed_step(cause, done)
+            raise _write_failed(
+                cause, f"writing step {failed} failed", run.workdir, mngr
+            ) from error
     finally:
         # A failed multi-process run leaves its pending save: finishing it would wait for
         # processes that have stopped, and this one is about to exit.
@@ -277,9 +396,9 @@ def fit(
             _settle(mngr)
             mngr.close()
         bar.close()
-        _close_quietly(writer)
-        if lock is not None:
-            lock.release()
+        _close_quietly(run.writer)
+        if run.lock is not None:
+            run.lock.release()
     return state
 
 

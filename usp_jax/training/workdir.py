@@ -71,11 +71,25 @@ def folder_problem(path: str | os.PathLike) -> str | None:
     return None
 
 
+#: What a run writes into its workdir: a folder holding any of them is a workdir (to resume).
+WORKDIR_ENTRIES = frozenset(
+    {"config.json", "checkpoints", "metrics.jsonl", "tensorboard", LOCK_FILE, CONFIG_CHANGES_FILE}
+)
+
+
 def check_workdir_path(workdir: pathlib.Path) -> None:
-    """Raises WorkdirError unless ``workdir`` is, or can be made as, a writable folder."""
+    """Raises WorkdirError unless ``workdir`` is, or can be made as, a writable folder, and is
+    new, empty or a workdir already (``WORKDIR_ENTRIES``): a run never mixes its files into a
+    folder of other data, such as the photos it trains on."""
     problem = folder_problem(workdir)
     if problem:
         raise WorkdirError(f"workdir {workdir}{problem}")
+    entries = sorted(p.name for p in workdir.iterdir()) if workdir.is_dir() else []
+    if entries and not WORKDIR_ENTRIES.intersection(entries):
+        raise WorkdirError(
+            f"workdir {workdir} holds {len(entries)} other entries (e.g. {entries[0]}) and is not"
+            " a training workdir (no config.json or checkpoints/); give a new or empty folder"
+        )
     for name in ("config.json", "checkpoints", "metrics.jsonl", "tensorboard"):
         path = workdir / name
         if path.exists() and not os.access(path, os.W_OK):

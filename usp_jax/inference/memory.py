@@ -1,0 +1,92 @@
+"""Whether an image fits in memory before the network runs on it: an estimate of the network's
+activations at that size against the memory free now, so that a photo too large for native
+size is refused in one line naming ``max_side`` instead of aborting the process (a failed
+allocation inside XLA ends it with ``std::bad_alloc``).
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import pathlib
+
+import jax
+
+from usp_jax.core.model import CELL, ModelConfig
+
+#: Bytes of one activation value: float32, as the network runs on CPU (conservative elsewhere).
+_VALUE_BYTES = 4
+#: Headroom over the estimate for XLA's own buffers and the host's copies of the image.
+_MARGIN = 1.25
+
+
+class ImageTooLarge(ValueError):
+    """An image whose activations would not fit in the memory free now."""
+
+
+def activation_bytes(model_config: ModelConfig, batch: int, height: int, width: int) -> int:
+    """Peak bytes of the network's activations on ``batch`` images of ``height x width`` px
+    (network pixels, after any enlargement).
+
+    The peak is the first full-resolution convolution's input and output, with the output of
+    the next one being written ([B, H, W, 3 + 2 * C1] values, C1 = ``backbone_channels[0]``), plus
+    the heads at cell resolution; XLA's own figure (``memory_analysis``) is 256 B per pixel for
+    the paper network, where this gives 268 B before the margin (a test compares them).
+    """
+    first = model_config.backbone_channels[0]
+    per_pixel = 3 + 2 * first
+    per_cell = 2 * model_config.head_channels + model_config.descriptor_dim
+    per_cell += model_config.backbone_channels[-1]
+    values = batch * height * width * (per_pixel + per_cell / CELL**2)
+    return int(_MARGIN * _VALUE_BYTES * values)
+
+
+def available_bytes() -> int | None:
+    """Memory free for the computation now: the device's free memory on an accelerator, else
+    the host's ``MemAvailable`` (``/proc/meminfo``) within the process's cgroup limit, else
+    ``os.sysconf``'s available pages; None when nothing says."""
+    device = jax.local_devices()[0]
+    if device.platform != "cpu":
+        stats = device.memory_stats() or {}
+        if "bytes_limit" in stats:
+            return int(stats["bytes_limit"] - stats.get("bytes_in_use", 0))
+        return None
+    free = []
+    try:
+        for line in pathlib.Path("/proc/meminfo").read_text().splitlines():
+            if line.startswith("MemAvailable:"):
+                free.append(int(line.split()[1]) * 1024)
+    except (OSError, ValueError, IndexError):
+        pass
+    try:
+        limit = pathlib.Path("/sys/fs/cgroup/memory.max").read_text().strip()
+        used = pathlib.Path("/sys/fs/cgroup/memory.current").read_text().strip()
+        if limit.isdigit() and used.isdigit():
+            free.append(int(limit) - int(used))
+    except OSError:
+        pass
+    if not free:
+        try:
+            free.append(os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE"))
+        except (ValueError, OSError, AttributeError):
+            return None
+    return min(free)
+
+
+def check_fits(model_config: ModelConfig, shape: tuple[int, ...], upsample: int = 1) -> None:
+    """Raises ImageTooLarge unless the network's activations on a uint8 [B, H, W, 3] batch of
+    ``shape``, enlarged ``upsample`` times, fit in the memory free now. The message names the
+    ``max_side`` (``--max-side``) at which they would."""
+    batch, height, width = shape[:3]
+    need = activation_bytes(model_config, batch, height * upsample, width * upsample)
+    free = available_bytes()
+    if free is None or need <= free:
+        return
+    # The need grows with the pixel count: the side that fits, to whole cells.
+    side = max(CELL, int(max(height, width) * math.sqrt(free / need)) // CELL * CELL)
+    images = f"{batch} images" if batch > 1 else "an image"
+    raise ImageTooLarge(
+        f"{images} of {width}x{height} px{f' enlarged {upsample}x' if upsample > 1 else ''}"
+        f" needs about {need / 2**30:.1f} GiB for the network, {max(free, 0) / 2**30:.1f} GiB"
+        f" are free; detect on a smaller copy: --max-side {side} or less (max_side={side})"
+    )
