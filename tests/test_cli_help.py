@@ -79,3 +79,8 @@ def test_demo_help_states_the_time_the_readme_states():
     (duration,) = re.findall(r"demo .*?(about \d+ s on 2 idle CPU cores)", text)
     readme = pathlib.Path(__file__).resolve().parents[1] / "README.md"
     assert duration in " ".join(readme.read_text().split())
+
+
+@pytest.mark.parametrize("command", sorted(set(COMMANDS) - {"usp-jax"}))
+def test_each_command_help_opens_with_what_it_does(command):
+    assert COMMANDS[command].description

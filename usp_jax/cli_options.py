@@ -402,6 +402,9 @@ def build_parser() -> argparse.ArgumentParser:
         _add_track,
     ):
         add(sub)
+    for choice in sub._choices_actions:  # `usp-jax COMMAND -h` opens with what it does
+        command = sub.choices[choice.dest]
+        command.description = command.description or choice.help
     _apply_ranges(parser)
     return parser
 
