@@ -143,6 +143,12 @@ def run(frames, windows: list[range], cuts: list[int], detectors: dict) -> dict:
     return rows
 
 
+def counted(row: dict) -> dict:
+    """``row`` with its track lengths as {length: number of tracks} (the JSON's form)."""
+    lengths, counts = np.unique(row["track_lengths"], return_counts=True)
+    return {**row, "track_lengths": dict(zip(lengths.tolist(), counts.tolist()))}
+
+
 def plot(rows: dict, path: str, title: str) -> None:
     import matplotlib
 
@@ -222,7 +228,7 @@ def main() -> None:
                     "cuts": cuts,
                     "windows": [[w[0], w[-1]] for w in windows],
                     "top": args.top,
-                    "methods": rows,
+                    "methods": {name: counted(row) for name, row in rows.items()},
                 },
                 f,
                 indent=1,
