@@ -200,6 +200,7 @@ def test_an_image_too_large_for_the_free_memory_is_one_line_naming_max_side(
 ):
     free = 200_000  # bytes: what a 96x128 photo at native size outgrows with SMALL_MODEL
     monkeypatch.setattr(memory, "available_bytes", lambda: free)
+    monkeypatch.setattr(memory, "_FITTED", set())  # shapes other tests ran on fitted then
     argv = ["detect", str(image), "--checkpoint", str(small_weights), "--max-side", "0"]
     assert main(argv) == 2
     line = one_error_line(capsys, "detect")

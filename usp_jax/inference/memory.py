@@ -73,14 +73,23 @@ def available_bytes() -> int | None:
     return min(free)
 
 
+#: (network, batch shape, enlargement) that fitted once: checked again, they would only cost
+#: time (a millisecond, as much as a small image's detection), and XLA reuses their buffers.
+_FITTED: set[tuple] = set()
+
+
 def check_fits(model_config: ModelConfig, shape: tuple[int, ...], upsample: int = 1) -> None:
     """Raises ImageTooLarge unless the network's activations on a uint8 [B, H, W, 3] batch of
     ``shape``, enlarged ``upsample`` times, fit in the memory free now. The message names the
     ``max_side`` (``--max-side``) at which they would."""
+    key = (model_config, tuple(shape), upsample)
+    if key in _FITTED:
+        return
     batch, height, width = shape[:3]
     need = activation_bytes(model_config, batch, height * upsample, width * upsample)
     free = available_bytes()
     if free is None or need <= free:
+        _FITTED.add(key)
         return
     # The need grows with the pixel count: the side that fits, to whole cells.
     side = max(CELL, int(max(height, width) * math.sqrt(free / need)) // CELL * CELL)
