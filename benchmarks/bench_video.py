@@ -84,10 +84,11 @@ class Recording:
 
 
 def methods(top: int, networks: list[str], baselines: list[str]) -> dict[str, object]:
-    found = {
-        f"UnsuperPoint {name}": Detector.pretrained(name, top_n=top, nms_radius=4)
-        for name in networks
-    }
+    found = {}
+    for network in networks:  # NAME or NAME:SIDE, the network on frames shrunk to SIDE px
+        name, _, side = network.partition(":")
+        label = f"UnsuperPoint {name}" + (f" at {side} px" if side else "")
+        found[label] = Detector.pretrained(name, top_n=top, nms_radius=4, max_side=int(side or 0))
     for name in baselines:
         try:
             found[name] = baseline_method(name, top)
@@ -187,7 +188,13 @@ def main() -> None:
     parser.add_argument("--windows", type=int, default=3, help="windows of consecutive frames")
     parser.add_argument("--length", type=int, default=20, help="frames per window")
     parser.add_argument("--top", type=int, default=1000, help="points per frame, every method")
-    parser.add_argument("--networks", nargs="+", default=["paper"], help="shipped weights")
+    parser.add_argument(
+        "--networks",
+        nargs="+",
+        default=["paper"],
+        help="shipped weights by name; NAME:SIDE detects on frames shrunk to SIDE px on their"
+        " longer side (keypoints in the frame's pixels, matched as the others)",
+    )
     parser.add_argument("--baselines", nargs="*", default=["ORB", "AKAZE", "SIFT", "XFeat"])
     parser.add_argument("--json", help="write the numbers here")
     parser.add_argument("--plot", help="write the figure here (PNG)")
