@@ -347,25 +347,27 @@ def test_a_photo_against_a_black_image_gives_no_homography(image, tmp_path, caps
 # 8. A full disk names the step being written and the last complete checkpoint
 
 
-def test_a_failed_background_save_names_its_own_step(tmp_path, monkeypatch):
+def test_a_failed_background_save_names_its_own_step_and_the_last_complete_one(
+    tmp_path, monkeypatch
+):
     workdir = tmp_path / "run"
     original = checkpoint.save
 
     def save(mngr, step, state, config):
-        if step == 2:  # its background write fails; the next save reports it
-            return
-        raise ValueError(
-            f'RESOURCE_EXHAUSTED: Error writing local file "{workdir}/checkpoints/2.orbax-'
-            "checkpoint-tmp-17/state/_sharding\": No space left on device [os_error_code='28']"
-        )
+        if step == 2:
+            original(mngr, step, state, config)
+        elif step == 6:  # step 4's background write failed; this save reports it
+            raise ValueError(
+                f'RESOURCE_EXHAUSTED: Error writing local file "{workdir}/checkpoints/4.orbax-'
+                "checkpoint-tmp-17/state/_sharding\": No space left on device [os_error_code='28']"
+            )
 
     monkeypatch.setattr(checkpoint, "save", save)
     with pytest.raises(workdir_lib.WorkdirError) as info:
-        train.fit(tiny_config(SMALL_MODEL, (32, 48), 4), workdir, progress=False)
+        train.fit(tiny_config(SMALL_MODEL, (32, 48), 6), workdir, progress=False)
     message = str(info.value)
-    assert message.startswith("writing step 2 failed: ") and "4.orbax" not in message
-    assert "No space left on device; no checkpoint is complete yet" in message
-    monkeypatch.setattr(checkpoint, "save", original)
+    assert message.startswith("writing step 4 failed: ") and "4.orbax-checkpoint-tmp" in message
+    assert message.endswith("No space left on device; the last complete checkpoint is step 2")
 
 
 def test_the_last_complete_checkpoint_is_read_from_disk(tmp_path):

@@ -66,8 +66,6 @@ def _write_failed(error: OSError, what: str, workdir: pathlib.Path, mngr) -> Wor
     latest = _last_complete_step(workdir / "checkpoints") if mngr is not None else None
     where = error.filename or workdir
     kept = f"; the last complete checkpoint is step {latest}" if latest is not None else ""
-    if mngr is not None and latest is None:
-        kept = "; no checkpoint is complete yet"
     return WorkdirError(f"{what}: {where}: {error.strerror or _first_line(error)}{kept}")
 
 
