@@ -7,7 +7,8 @@ each method loses its homography accuracy.
 
 prints, per view k of the viewpoint scenes (``usp-jax make-pairs`` draws view k = 2 ... 6 with
 growing rotation, scale and keystone), every method's HA at eps 1/3/5, median corner error, LE,
-RS and MS; with ``--rotation PAIRS`` the same per range of the pairs' in-plane rotation, read
+RS and MS; with ``--zoom PAIRS`` the same per zoom bin (``usp-jax make-pairs --zoom``); with
+``--rotation PAIRS`` the same per range of the pairs' in-plane rotation, read
 from their homographies, for every method in the file (0-10, 10-20, >=20 degrees, or 30-degree
 ranges up to 180 when some pair turns by 60 or more, as ``usp-jax make-pairs --rotation 180``
 makes them); and with ``--against``, the change of that file's UnsuperPoint against
@@ -36,7 +37,7 @@ import argparse
 import json
 import pathlib
 
-from usp_jax.evaluation.analysis import by_rotation, by_view, markdown_by_view
+from usp_jax.evaluation.analysis import by_rotation, by_view, by_zoom, markdown_by_view
 from usp_jax.evaluation.protocol import METRICS
 from usp_jax.evaluation.statistics import (
     MODEL,
@@ -56,6 +57,12 @@ def main() -> None:
         metavar="PAIRS",
         help="also break the viewpoint pairs down by in-plane rotation, reading "
         "their homographies from PAIRS, the evaluated folder",
+    )
+    parser.add_argument(
+        "--zoom",
+        metavar="PAIRS",
+        help="also break the viewpoint pairs down by zoom (<0.71, 0.71-1, 1-1.41, >=1.41, from"
+        " their homographies at image 1's centre), reading them from PAIRS, the evaluated folder",
     )
     parser.add_argument(
         "--intervals",
@@ -104,6 +111,12 @@ def main() -> None:
         except (OSError, ValueError) as error:
             parser.error(f"--rotation {args.rotation}: {error}")
         print("\n" + markdown_by_view(rotation_table, group="rotation (deg)"))
+    if args.zoom:
+        try:
+            zoom_table = by_zoom(joined, args.zoom)
+        except (OSError, ValueError) as error:
+            parser.error(f"--zoom {args.zoom}: {error}")
+        print("\n" + markdown_by_view(zoom_table, group="zoom"))
     if args.intervals:
         print("\n" + intervals_markdown(joined, args.rounds))
     if new_rows is not None:

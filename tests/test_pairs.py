@@ -6,6 +6,7 @@ import pytest
 import skimage.data
 
 from usp_jax.evaluation.pairs import make_pairs, pair_rotations
+from usp_jax.evaluation.zoom import pair_zooms, zoom_label, zoom_of
 
 HEIGHT, WIDTH = 60, 80
 
@@ -47,7 +48,7 @@ def turn_of(homography):
     return -np.degrees(np.arctan2(jacobian[1, 0] - jacobian[0, 1], jacobian[0, 0] + jacobian[1, 1]))
 
 
-def assert_registered(scene, k):
+def assert_registered(scene, k, tolerance=0.03, coverage=0.3):
     """Image 1 warped by H_1_k with OpenCV is image k wherever image 1 covers it."""
     homography = np.loadtxt(scene / f"H_1_{k}")
     covered = cv2.warpPerspective(np.ones((HEIGHT, WIDTH), np.float32), homography, (WIDTH, HEIGHT))
@@ -55,11 +56,11 @@ def assert_registered(scene, k):
     inside = cv2.erode((covered >= 1 - 1e-6).astype(np.uint8), np.ones((5, 5), np.uint8)).astype(
         bool
     )
-    assert inside.mean() > 0.3
+    assert inside.mean() > coverage
     warped = cv2.warpPerspective(read(scene / "1.ppm"), homography, (WIDTH, HEIGHT))
     error = np.abs(warped - read(scene / f"{k}.ppm"))[inside].mean()
     # Both images are resampled from the same photo: only interpolation differences remain.
-    assert error < 0.03
+    assert error < tolerance
     return homography, error, inside
 
 
@@ -227,6 +228,39 @@ def test_rotated_views_have_no_black_borders(tmp_path):
         for k in range(1, 7):
             assert cv2.imread(str(scene / f"{k}.ppm")).min() >= 99
         assert_registered(scene, 6)
+
+
+def test_zoomed_pairs_register_show_no_black_border_and_zoom_by_the_drawn_factor(tmp_path):
+    bright = (100 + 0.6 * skimage.data.astronaut()).astype(np.uint8)
+    write_photo(tmp_path / "bright.png", bright, (300, 300))
+    (scene,) = make_pairs(
+        tmp_path, tmp_path / "out", size=(HEIGHT, WIDTH), kinds=("v",), zoom=(0.5, 2), seed=1
+    )
+    zooms = pair_zooms(0, 6, (0.5, 2), seed=1)
+    for k, zoom in zip(range(2, 7), zooms):
+        # The photo is enlarged with INTER_CUBIC, whose ringing dips a little below 100.
+        assert cv2.imread(str(scene / f"{k}.ppm")).min() >= 90
+        homography, _, _ = assert_registered(scene, k, tolerance=0.05, coverage=0.15)
+        # The drawn zoom times the view's own scale change (up to 20 % and a keystone).
+        assert 0.7 < zoom_of(homography, (HEIGHT, WIDTH)) / zoom < 1.4
+
+
+def test_drawn_zooms_are_log_uniform_and_binned_in_steps_of_sqrt_2():
+    drawn = np.log2([pair_zooms(i, 6, (0.5, 2), seed=3) for i in range(200)])
+    assert drawn.min() >= -1 and drawn.max() <= 1
+    assert np.histogram(drawn, bins=4, range=(-1, 1))[0].min() > 0.2 * drawn.size
+    assert pair_zooms(0, 3, None) == [1.0, 1.0]
+    labels = [zoom_label(z) for z in (0.5, 0.71, 0.9, 1.0, 1.2, 1.41, 2.5)]
+    assert labels == ["<0.71", "0.71-1", "0.71-1", "1-1.41", "1-1.41", ">=1.41", ">=1.41"]
+    shrink = np.diag([0.5, 0.5, 1.0])
+    assert zoom_of(shrink, (HEIGHT, WIDTH)) == pytest.approx(0.5)
+
+
+@pytest.mark.parametrize("zoom", [(0.1, 2), (2, 1), (0.5,)])
+def test_bad_zooms_are_rejected_before_writing(photos, tmp_path, zoom):
+    with pytest.raises(ValueError, match="zoom"):
+        make_pairs(photos, tmp_path / "out", zoom=zoom)
+    assert not (tmp_path / "out").exists()
 
 
 def test_drawn_rotations_are_uniform_deterministic_and_listed_ones_serve_every_view_alike():

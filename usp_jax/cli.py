@@ -84,6 +84,7 @@ def _load_detector(args, **options):
     from usp_jax.inference.detector import Detector
 
     options.setdefault("upsample", getattr(args, "upsample", 1))
+    options.setdefault("any_scale", getattr(args, "any_scale", False))
     if getattr(args, "weights", None):
         return Detector.pretrained(args.weights, **options)
     return Detector.load(getattr(args, "checkpoint", None) or None, **options)
@@ -172,6 +173,7 @@ def cmd_evaluate(args) -> None:
     )
     enlarged = f", model on {args.upsample}x enlarged images" if args.upsample > 1 else ""
     enlarged += ", model matching across any rotation" if guide is not None else ""
+    enlarged += ", model on an image pyramid (--any-scale)" if args.any_scale else ""
     print(f"{args.hpatches} at {height}x{width}, top {args.top} points, NMS {args.nms}{enlarged}")
     print(protocol.format_table(results))
     if args.json:
@@ -198,6 +200,7 @@ def cmd_make_pairs(args) -> None:
         num_views=args.views,
         rotation=args.rotation,
         rotation_angles=args.rotation_angles,
+        zoom=args.zoom,
         progress=not args.no_progress,
     )
     print(f"wrote {len(scenes)} scenes to {args.out}")
@@ -208,9 +211,11 @@ def cmd_benchmark(args) -> None:
 
     _check_output_file(args.json, "--json")
     if args.weights or args.checkpoint:
-        detector = _load_detector(args)
+        detector = _load_detector(args, any_scale=False)
     else:  # every shipped network, side by side
         detector = benchmark.shipped_networks(upsample=args.upsample)
+    if args.any_scale:  # beside the single-scale rows, in the same run
+        detector = benchmark.with_any_scale(detector)
     result = benchmark.benchmark(
         detector,
         resolutions=tuple(args.res),
@@ -246,6 +251,7 @@ def cmd_detect(args) -> None:
                     "keypoints": features.keypoints.tolist(),
                     "scores": features.scores.tolist(),
                     "descriptors": features.descriptors.tolist(),
+                    "sizes": None if features.scales is None else features.scales.tolist(),
                 }
             )
         )
@@ -348,6 +354,7 @@ def cmd_export(args) -> None:
             top_n=args.top,
             nms_radius=args.nms,
             upsample=detector.upsample,
+            any_scale=detector.any_scale,
         )
         export(detector, args.artifact, *args.res)
         print(f"wrote {args.artifact} (jax.export, uint8 [b, {args.res[0]}, {args.res[1]}, 3])")

@@ -69,8 +69,8 @@ _non_negative = _integer_at_least(0, "non-negative")
 
 
 def _zoom_range(text: str) -> tuple[float, float]:
-    """``MIN,MAX`` zoom factors for make-pairs (``evaluation.pairs.ZOOM_LIMITS``)."""
-    from usp_jax.evaluation.pairs import ZOOM_LIMITS
+    """``MIN,MAX`` zoom factors for make-pairs (``evaluation.zoom.ZOOM_LIMITS``)."""
+    from usp_jax.evaluation.zoom import ZOOM_LIMITS
 
     try:
         low, high = (float(v) for v in text.split(","))

@@ -185,6 +185,7 @@ def _add_evaluate(subparsers) -> None:
     p.add_argument("--plots", help="folder for keypoint and match PNGs")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     _add_upsample(p)
+    _add_any_scale(p)
     _add_any_rotation(p)
 
 
@@ -285,6 +286,7 @@ def _add_benchmark(subparsers) -> None:
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.add_argument("--json", help="write the settings and every timed row as JSON here")
     _add_upsample(p)
+    _add_any_scale(p)
 
 
 def _add_detect(subparsers) -> None:
@@ -306,6 +308,7 @@ def _add_detect(subparsers) -> None:
     p.add_argument("--out", help="PNG with the keypoints drawn")
     p.add_argument("--json", help="keypoints, scores and descriptors as JSON")
     _add_upsample(p)
+    _add_any_scale(p)
 
 
 def _add_match(subparsers) -> None:
@@ -327,6 +330,7 @@ def _add_match(subparsers) -> None:
     p.add_argument("--out", help="PNG of the inlier matches and image 1's border warped by H")
     p.add_argument("--json", help="homography, matches, inlier mask and keypoints as JSON")
     _add_upsample(p)
+    _add_any_scale(p)
     _add_any_rotation(p)
 
 
@@ -361,6 +365,7 @@ def _add_export(subparsers) -> None:
     )
     _add_nms_radius(p, 0.0, "artifact NMS radius in px (default 0)")
     _add_upsample(p)
+    _add_any_scale(p)
 
 
 def _add_demo(subparsers) -> None:

@@ -1,5 +1,5 @@
 """Where a method loses accuracy: evaluation rows broken down by viewpoint strength (view k of
-``usp-jax make-pairs``) and by the pairs' in-plane rotation, and the precision of the RANSAC
+``usp-jax make-pairs``), by the pairs' in-plane rotation and by their zoom, and the precision of the RANSAC
 inliers under the true homography.
 """
 
@@ -16,6 +16,7 @@ import numpy as np
 from usp_jax.core import geometry
 from usp_jax.evaluation import metrics, protocol, sequences
 from usp_jax.evaluation.statistics import per_pair
+from usp_jax.evaluation.zoom import ZOOM_EDGES, zoom_label, zoom_of
 from usp_jax.inference.matching import Matching
 from usp_jax.inference.turning import in_plane_rotation
 
@@ -57,15 +58,8 @@ def by_rotation(
     every method in them, the ranges (default :func:`rotation_ranges` of the evaluated pairs)
     applied to :func:`in_plane_rotation` of each pair's homography at image 1's centre (read from
     ``pairs_root``, the folder that was evaluated). Ranges without pairs are left out."""
-    angles, sizes = {}, {}
-    for files in sequences.scan_sequences(pairs_root):
-        if files.path1 not in sizes:
-            sizes[files.path1] = sequences.read_image(files.path1).shape[:2]
-        angles[files.scene, files.index] = in_plane_rotation(files.homography, sizes[files.path1])
+    angles = _pair_measure(rows, pairs_root, in_plane_rotation)
     evaluated = {(r["scene"], r["k"]) for r in rows if r["split"] == "v"}
-    missing = evaluated - angles.keys()
-    if missing:
-        raise ValueError(f"{pairs_root} lacks {len(missing)} evaluated pairs, e.g. {min(missing)}")
     if ranges is None:
         ranges = rotation_ranges(angles[pair] for pair in evaluated)
     lows = [low for low, _ in ranges]
@@ -78,6 +72,36 @@ def by_rotation(
     return {
         m: {_range_label(low, ranges): s for low, s in groups.items()}
         for m, groups in table.items()
+    }
+
+
+def _pair_measure(rows: list[dict], pairs_root, measure) -> dict[tuple[str, int], float]:
+    """``{(scene, k): measure(homography, image 1's (height, width))}`` of every pair under
+    ``pairs_root``; raises ValueError when an evaluated viewpoint pair is not there."""
+    values, sizes = {}, {}
+    for files in sequences.scan_sequences(pairs_root):
+        if files.path1 not in sizes:
+            sizes[files.path1] = sequences.read_image(files.path1).shape[:2]
+        values[files.scene, files.index] = measure(files.homography, sizes[files.path1])
+    evaluated = {(r["scene"], r["k"]) for r in rows if r["split"] == "v"}
+    missing = evaluated - values.keys()
+    if missing:
+        raise ValueError(f"{pairs_root} lacks {len(missing)} evaluated pairs, e.g. {min(missing)}")
+    return values
+
+
+def by_zoom(rows: list[dict], pairs_root: str | pathlib.Path, edges=ZOOM_EDGES) -> dict:
+    """``{method: {zoom bin: statistics}}`` over the viewpoint pairs of evaluation rows, as
+    :func:`by_rotation`, binned by :func:`zoom_of` of each pair's homography (read from
+    ``pairs_root``, the folder that was evaluated); bins in increasing zoom, empty ones left
+    out."""
+    zooms = _pair_measure(rows, pairs_root, zoom_of)
+    table = _statistics(
+        rows, lambda row: int(np.searchsorted(edges, zooms[row["scene"], row["k"]], side="right"))
+    )
+    lows = (0.0, *edges)
+    return {
+        m: {zoom_label(lows[i], edges): s for i, s in groups.items()} for m, groups in table.items()
     }
 
 

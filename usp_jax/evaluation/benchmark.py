@@ -52,6 +52,25 @@ def shipped_networks(**detector_options) -> dict[str, Detector]:
     return networks
 
 
+def with_any_scale(detector: Detector | Mapping[str, Detector]) -> dict[str, Detector]:
+    """Each detector beside its ``any_scale=True`` twin ("NAME any-scale"; a lone detector is
+    "single-scale"), so that one run times both."""
+    detectors = {"single-scale": detector} if isinstance(detector, Detector) else dict(detector)
+    twins = {
+        f"{name} any-scale": Detector(
+            d.variables,
+            d.model_config,
+            top_n=d.top_n,
+            nms_radius=d.nms_radius,
+            border=d.border,
+            upsample=d.upsample,
+            any_scale=True,
+        )
+        for name, d in detectors.items()
+    }
+    return {**detectors, **twins}
+
+
 def benchmark_photos() -> list[np.ndarray]:
     """Two real photos that ship with scikit-image (uint8 RGB, no download): what the benchmark
     detects on by default."""

@@ -15,6 +15,13 @@ uniformly or taken from a list: views 2..N are then drawn by geometry.sample_win
 square region of the photo around image 1 that holds a turned view at any angle, so rotated views
 show real content too, and H_1_k stays exact.
 
+With `zoom` (min, max), every viewpoint pair (1, k) also zooms: image k's content is magnified about its
+centre by a factor drawn log-uniformly from [min, max] (0.5: image k shows twice the extent, at half the
+pixel scale). Views are then cut from a window of the photo 1.5 / min times the output's sides around
+image 1, so zoomed-out views show real content too; they are rendered at 1 / zoom times the output size
+and shrunk with INTER_AREA, as a camera would see them, not aliased. The few strongly keystoned views
+that would still reach past the photo zoom out less, just enough to fit (`zoom.fitting_zoom`).
+
 Output is deterministic for a seed (and a given order of the source list).
 
 Nothing of the user's is overwritten or mixed into: the output folder must be new, empty, or an
@@ -46,6 +53,7 @@ from usp_jax.core.geometry import (
     sample_window_homography,
     window_origin,
 )
+from usp_jax.evaluation.zoom import check_zoom, fitting_zoom, pair_zooms, render, zoomed
 from usp_jax.inference.images import IMAGE_SUFFIXES, read_image
 
 # Image 1 of every scene: an upright, undistorted crop, like the frontal reference shots of HPatches.
@@ -266,6 +274,7 @@ def make_pairs(
     kinds: Sequence[str] = ("v", "i"),
     rotation: float | None = None,
     rotation_angles: Sequence[float] | None = None,
+    zoom: tuple[float, float] | None = None,
     progress: bool = False,
 ) -> list[Path]:
     """Writes `v_<stem>` / `i_<stem>` HPatches-style scenes for every readable source photo.
@@ -287,6 +296,8 @@ def make_pairs(
         angle, so the photo is enlarged about 1.4 times more than without rotation.
       rotation_angles: instead of `rotation`, fixed angles in [-180, 180] degrees, used in turn
         (`pair_rotations`).
+      zoom: (min, max) in [0.25, 4]: every viewpoint pair (1, k) also zooms by a factor drawn
+        log-uniformly from the range (`zoom.pair_zooms`, module docstring).
       progress: show a tqdm progress bar over the photos.
     Returns:
       The scene folders written, in order.
@@ -308,6 +319,7 @@ def make_pairs(
     if not integer or not 0 <= seed <= MAX_SEED:
         raise ValueError(f"seed must be an integer from 0 to {MAX_SEED}, got {seed!r}")
     _check_rotation(rotation, rotation_angles)
+    zoom = check_zoom(zoom)
     rotated = rotation is not None or rotation_angles is not None
     sources = _list_sources(images)
     out_dir = Path(out_dir)
@@ -319,6 +331,7 @@ def make_pairs(
         "kinds": list(kinds),
         "rotation": rotation,
         "rotation_angles": None if rotation_angles is None else list(rotation_angles),
+        "zoom": None if zoom is None else list(zoom),
         "sources": [str(path) for path in sources],
     }
     # The region of the photo views are cut from, in the [height, width] frame in which sample_homography
@@ -331,6 +344,13 @@ def make_pairs(
         window = (max(height, side), max(width, side))
     else:
         window = (height, width)
+    if zoom is not None and zoom[0] < 1:
+        # Room for the largest zoomed-out patch (about the frame's size / zoom) around image 1.
+        reach = 1.5 / zoom[0]
+        window = (
+            max(window[0], math.ceil(height * reach)),
+            max(window[1], math.ceil(width * reach)),
+        )
     # The photo is prepared at the size whose REFERENCE_VIEW crop has the output size: views are then
     # resampled about 1:1 instead of enlarged. Its pixel frame is mapped onto the window, and the window onto
     # the frame; that mapping cancels in H_1_k = Hk @ inv(H1).
@@ -339,7 +359,7 @@ def make_pairs(
     to_frame = np.diag(
         [(window[1] - 1) / (source_width - 1), (window[0] - 1) / (source_height - 1), 1.0]
     )
-    if rotated:
+    if window != (height, width):
         origin_x, origin_y = window_origin(height, width, window)
         to_frame = (
             np.array([[1.0, 0.0, -origin_x], [0.0, 1.0, -origin_y], [0.0, 0.0, 1.0]]) @ to_frame
@@ -388,17 +408,14 @@ def make_pairs(
                 )
                 for k, config in enumerate(configs, start=1)
             ]
+        zooms = [1.0] + [
+            fitting_zoom(frame @ to_frame, z, height, width, photo.shape)
+            for frame, z in zip(frames[1:], pair_zooms(index, num_views, zoom, seed=seed))
+        ]
+        frames = [zoomed(frame, z, height, width) for frame, z in zip(frames, zooms)]
         # Every view lies inside the photo, so the black constant border never shows (a test checks it).
         views = [
-            cv2.warpPerspective(
-                photo,
-                frame @ to_frame,
-                (width, height),
-                flags=cv2.INTER_LINEAR,
-                borderMode=cv2.BORDER_CONSTANT,
-                borderValue=0,
-            )
-            for frame in frames
+            render(photo, frame @ to_frame, z, height, width) for frame, z in zip(frames, zooms)
         ]
         if not scenes:  # the first scene: only now is anything written
             out_dir.mkdir(parents=True, exist_ok=True)

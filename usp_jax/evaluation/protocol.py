@@ -62,11 +62,16 @@ def as_method(
 ) -> Method:
     """The detector as an evaluation Method (L2 descriptors) returning ALL its candidate points:
     the evaluation applies NMS and top-k to every method alike, so ``detector``'s ``top_n``,
-    ``nms_radius`` and ``border`` are not used (its ``upsample`` is).
+    ``nms_radius`` and ``border`` are not used (its ``upsample`` and ``any_scale`` are).
 
     With a rotation-invariant ``guide`` the method matches across any rotation: image 2 is
     detected turned back by the angle the guide estimates (``turning.detect_pair``)."""
-    every_point = Detector(detector.variables, detector.model_config, upsample=detector.upsample)
+    every_point = Detector(
+        detector.variables,
+        detector.model_config,
+        upsample=detector.upsample,
+        any_scale=detector.any_scale,
+    )
     if guide is None:
         return Method(name, every_point.detect, cv2.NORM_L2)
 

@@ -30,7 +30,7 @@ import numpy as np
 
 from usp_jax.core.cpu_kernels import compiler_options
 from usp_jax.core.model import CELL, ModelConfig, UnsuperPoint
-from usp_jax.inference import weights
+from usp_jax.inference import pyramid, weights
 from usp_jax.inference.features import Features
 from usp_jax.inference.memory import check_fits
 from usp_jax.inference.nms import NEIGHBOUR_REACH, radius_nms
@@ -114,13 +114,15 @@ def _detect_padded(
 
 
 def unbatch(outputs) -> list[Features]:
-    """Fixed-size device outputs -> one Features per image (numpy, float32)."""
-    keypoints, scores, descriptors, counts = jax.device_get(outputs)
+    """Fixed-size device outputs -> one Features per image (numpy, float32); a fifth output,
+    the pyramid's point sizes, becomes ``Features.scales``."""
+    keypoints, scores, descriptors, counts, *sizes = jax.device_get(outputs)
     return [
         Features(
             np.asarray(keypoints[b, :n], np.float32),
             np.asarray(scores[b, :n], np.float32),
             np.asarray(descriptors[b, :n], np.float32),
+            np.asarray(sizes[0][b, :n], np.float32) if sizes else None,
         )
         for b, n in enumerate(counts)
     ]
@@ -177,6 +179,8 @@ class Detector:
     (experiments/RESULTS.md); keypoints are always in the input image's pixels. ``max_side``:
     detect on a copy shrunk to at most this many px on its longer side (0: always at native
     size; ``MAX_SIDE`` suits photos), keypoints mapped back to the original's pixels.
+    ``any_scale``: detect on an image pyramid too (``inference.pyramid``), for pairs that differ
+    by zoom; each point's size is in ``Features.scales``; one function compiled per input size.
 
     The network runs in float32 on CPU (where bfloat16 convolutions are emulated and slower) and
     in ``model_config.dtype`` elsewhere. One function is compiled per padded input shape, batch
@@ -193,6 +197,7 @@ class Detector:
         border: float = 0,
         upsample: int = 1,
         max_side: int = 0,
+        any_scale: bool = False,
     ):
         _check_top_n(top_n)
         if not all(math.isfinite(v) and v >= 0 for v in (nms_radius, border)):
@@ -229,6 +234,12 @@ class Detector:
         )
         self._forward = jax.jit(
             self._function, static_argnames="top_n", compiler_options=compiler_options()
+        )
+        self.any_scale = bool(any_scale)
+        self._pyramid = (
+            pyramid.compile_pyramid(self._function, self.nms_radius, self.border)
+            if self.any_scale
+            else None
         )
 
     @classmethod
@@ -336,7 +347,10 @@ class Detector:
         """One image, :meth:`shrink`-ed, keypoints mapped back."""
         small, factors = self.shrink(image)
         features = self._run(small[None], top_n)[0]
-        return features._replace(keypoints=(features.keypoints + 0.5) * factors - 0.5)
+        scales = None if features.scales is None else features.scales * np.mean(factors)
+        return features._replace(
+            keypoints=(features.keypoints + 0.5) * factors - 0.5, scales=scales
+        )
 
     def _run(self, stack: np.ndarray, top_n: int | None) -> list[Features]:
         """A same-size uint8 [B, H, W, 3] stack of any H, W >= 8."""
@@ -348,6 +362,10 @@ class Detector:
         # Before compiling: an image too large for memory is one line naming max_side, not an
         # abort inside XLA.
         check_fits(self.model_config, padded.shape, self.upsample)
+        if self._pyramid is not None:
+            return pyramid.detect_by_size(
+                self._pyramid, self.variables, padded, sizes, top_n, unbatch
+            )
         return unbatch(self._forward(self.variables, padded, sizes, top_n=top_n))
 
 

@@ -25,14 +25,16 @@ def export(
 
     ``batch`` is a symbolic dimension name (any batch size at run time) or a fixed int. The file
     holds a ``jax.export`` artifact for the current platform computing ``(keypoints [B, K, 2],
-    scores [B, K], descriptors [B, K, F], counts [B])`` with the detector's top_n, NMS and border;
-    padding to whole cells happens inside. Read it back with :func:`load_exported`.
+    scores [B, K], descriptors [B, K, F], counts [B])`` with the detector's top_n, NMS and border,
+    and with ``any_scale`` the points' sizes [B, K] too; padding to whole cells happens inside. Read it back with :func:`load_exported`.
     """
     check_size((height, width, 3), height, width)
     (batch_dim,) = (batch,) if isinstance(batch, int) else jax.export.symbolic_shape(batch)
     pad_h, pad_w = padding(height, width)
 
     def detect(images):
+        if detector.any_scale:  # the pyramid pads each level itself
+            return detector._pyramid(detector.variables, images, top_n=detector.top_n)
         padded = jnp.pad(images, ((0, 0), (0, pad_h), (0, pad_w), (0, 0)), mode="edge")
         sizes = jnp.broadcast_to(jnp.array([height, width], jnp.int32), (images.shape[0], 2))
         return detector._function(detector.variables, padded, sizes, top_n=detector.top_n)

@@ -85,10 +85,10 @@ def radius_nms(
         return (
             jnp.asarray(valid, bool)
             if limit is None
-            else _greedy_nms(keypoints, scores, valid, radius, limit)
+            else greedy_radius_nms(keypoints, scores, valid, radius, limit)
         )
     if reach > NEIGHBOUR_REACH or limit is not None:
-        return _greedy_nms(keypoints, scores, valid, radius, limit)
+        return greedy_radius_nms(keypoints, scores, valid, radius, limit)
 
     def around(values, fill):
         return _neighbours(values, cells_h, cells_w, reach, fill)
@@ -109,8 +109,9 @@ def radius_nms(
     return keep
 
 
-def _greedy_nms(keypoints, scores, valid, radius: float, limit: int | None) -> jax.Array:
-    """:func:`radius_nms` in the greedy order itself: each step keeps the strongest point not yet
+def greedy_radius_nms(keypoints, scores, valid, radius: float, limit: int | None) -> jax.Array:
+    """:func:`radius_nms` in the greedy order itself, for points on any grid or none (the
+    pyramid's levels): each step keeps the strongest point not yet
     suppressed and suppresses every point within ``radius`` of it. O(M) memory; as many steps
     as points kept (at most ``limit``)."""
     keypoints, valid = jnp.asarray(keypoints), jnp.asarray(valid, bool)

@@ -27,6 +27,7 @@ from usp_jax.core.model import CELL
 from usp_jax.inference.detector import Detector
 from usp_jax.inference.features import Features
 from usp_jax.inference.matching import Matching, match_and_estimate
+from usp_jax.inference.pyramid import candidates
 
 #: Within this many degrees of a quarter turn (0, 90, 180 or -90) image 2 is turned by the quarter
 #: turn alone: the upright weights hold up to there, and a quarter turn moves every pixel whole
@@ -119,7 +120,7 @@ def detect_turned(
     canvas, affine = turn(small, angle)
     # Every point of the canvas (one per cell of the padded, enlarged canvas at most), so that the
     # cut below counts only points of the image itself (about half of a turned canvas is mirror).
-    every_point = math.prod(math.ceil(side * detector.upsample / CELL) for side in canvas.shape[:2])
+    every_point = candidates(*canvas.shape[:2], detector.upsample, detector.any_scale)
     features = detector.detect_as_is(canvas, every_point)
     back = cv2.transform(
         np.asarray(features.keypoints, np.float64).reshape(-1, 1, 2),
@@ -139,8 +140,9 @@ def detect_turned(
         )
     top_n = detector.top_n if top_n is None else top_n
     keep = np.flatnonzero(inside)[:top_n]  # Scores come sorted, best first.
+    scales = None if features.scales is None else features.scales[keep] * np.mean(factors)
     return Features(
-        back[keep].astype(np.float32), features.scores[keep], features.descriptors[keep]
+        back[keep].astype(np.float32), features.scores[keep], features.descriptors[keep], scales
     )
 
 
@@ -155,7 +157,10 @@ class Turn(NamedTuple):
 def _matched(features1: Features, features2: Features) -> Matching:
     """:func:`match_and_estimate` on the ``GUIDE_POINTS`` best points of each (scores sorted)."""
     return match_and_estimate(
-        *(Features(*(array[:GUIDE_POINTS] for array in f)) for f in (features1, features2))
+        *(
+            Features(*(None if array is None else array[:GUIDE_POINTS] for array in f))
+            for f in (features1, features2)
+        )
     )
 
 
