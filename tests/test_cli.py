@@ -44,7 +44,11 @@ def workdir(tmp_path_factory):
 
 
 def test_make_pairs_writes_hpatches_layout(pairs_dir):
-    assert sorted(p.name for p in pairs_dir.iterdir()) == ["i_astronaut", "v_astronaut"]
+    assert sorted(p.name for p in pairs_dir.iterdir()) == [
+        "i_astronaut",
+        "make-pairs.json",
+        "v_astronaut",
+    ]
     assert (pairs_dir / "v_astronaut" / "H_1_6").exists()
 
 

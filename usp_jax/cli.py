@@ -151,11 +151,10 @@ def _distributed(args) -> bool:
 
 
 def cmd_evaluate(args) -> None:
-    from usp_jax.evaluation import plotting, protocol, sequences
+    from usp_jax.evaluation import plotting, protocol
 
     _check_output_file(args.json, "--json")
     _check_output_folder(args.plots, "--plots")
-    sequences.scan_sequences(args.hpatches)  # every pair file checked, by name, before any work
     detector = None if args.baselines_only else _load_detector(args)
     height, width = args.res
     baselines = [name.strip() for name in args.baselines.split(",") if name.strip()]

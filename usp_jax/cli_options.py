@@ -28,7 +28,8 @@ from usp_jax.inference.detector import MAX_SIDE
 #: The range of every numeric option, by flag: checked where it is parsed, before anything runs,
 #: and shown in its help (tests sweep every option with absurd values). Beyond them a command
 #: runs for hours (RANSAC orders, repeats), outgrows any memory (points, batch, sides) or means
-#: nothing (angles, views, seeds).
+#: nothing (views, seeds). make-pairs' angles are checked by ``make_pairs`` itself, before it
+#: writes anything.
 RANGES: dict[str, tuple[float, float]] = {
     "--steps": (1, 10**9),
     "--num-processes": (1, 65536),
@@ -40,8 +41,6 @@ RANGES: dict[str, tuple[float, float]] = {
     "--upsample": (1, MAX_UPSAMPLE),
     "--views": (2, 6),  # the HPatches layout: images 1 to 6
     "--seed": (0, 2**32 - 1),
-    "--rotation": (0, 180),
-    "--rotation-angles": (-180, 180),
     "--batch": (1, 1024),
     "--repeats": (1, 1000),
     "--nms": (0, 100_000),  # past any image's diagonal one point survives
