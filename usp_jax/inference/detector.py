@@ -31,6 +31,7 @@ import numpy as np
 from usp_jax.core.cpu_kernels import compiler_options
 from usp_jax.core.model import CELL, ModelConfig, UnsuperPoint
 from usp_jax.inference import pyramid, weights
+from usp_jax.inference import refine as refine_lib
 from usp_jax.inference.features import Features
 from usp_jax.inference.memory import check_fits
 from usp_jax.inference.nms import NEIGHBOUR_REACH, radius_nms
@@ -90,6 +91,7 @@ def _detect_padded(
     nms_radius: float,
     border: float,
     upsample: int = 1,
+    refiner: dict | None = None,
 ) -> tuple[jax.Array, ...]:
     """uint8 [B, H, W, 3] (H, W multiples of 8) + sizes [B, 2] -> :func:`_select_points` output.
 
@@ -104,6 +106,10 @@ def _detect_padded(
         shape = (batch, height * upsample, width * upsample, channels)
         pixels = jax.image.resize(pixels, shape, "linear")
     predictions = model.apply(variables, pixels, train=False)
+    if refiner is not None:
+        # In the network's pixels, where the offsets were learned (inference.refine).
+        refined = refine_lib.refine_keypoints(refiner, pixels, predictions.keypoints)
+        predictions = predictions._replace(keypoints=refined)
     if upsample > 1:
         # Pixel centres sit at integers: input pixel x spans [x - 0.5, x + 0.5], s network pixels.
         predictions = predictions._replace(keypoints=(predictions.keypoints + 0.5) / upsample - 0.5)
@@ -181,6 +187,8 @@ class Detector:
     size; ``MAX_SIDE`` suits photos), keypoints mapped back to the original's pixels.
     ``any_scale``: detect on an image pyramid too (``inference.pyramid``), for pairs that differ
     by zoom; each point's size is in ``Features.scales``; one function compiled per input size.
+    ``refine``: move each point by the sub-pixel offset network of ``inference.refine`` (True:
+    the shipped one; a path: an ``.npz`` from ``refine.save_params``; False: the raw cells).
 
     The network runs in float32 on CPU (where bfloat16 convolutions are emulated and slower) and
     in ``model_config.dtype`` elsewhere. One function is compiled per padded input shape, batch
@@ -198,6 +206,7 @@ class Detector:
         upsample: int = 1,
         max_side: int = 0,
         any_scale: bool = False,
+        refine: bool | str | pathlib.Path = True,
     ):
         _check_top_n(top_n)
         if not all(math.isfinite(v) and v >= 0 for v in (nms_radius, border)):
@@ -225,12 +234,17 @@ class Detector:
         self.border = float(border)
         self.upsample = int(upsample)
         self.max_side = int(max_side)
+        self.refine = refine
+        self.refiner = (
+            None if refine is False else refine_lib.load_params(None if refine is True else refine)
+        )
         self._function = functools.partial(
             _detect_padded,
             model=UnsuperPoint(model_config),
             nms_radius=self.nms_radius,
             border=self.border,
             upsample=self.upsample,
+            refiner=self.refiner,
         )
         self._forward = jax.jit(
             self._function, static_argnames="top_n", compiler_options=compiler_options()
