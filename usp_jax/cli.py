@@ -85,6 +85,7 @@ def _load_detector(args, **options):
 
     options.setdefault("upsample", getattr(args, "upsample", 1))
     options.setdefault("any_scale", getattr(args, "any_scale", False))
+    options.setdefault("refine", not getattr(args, "no_refine", False))
     if getattr(args, "weights", None):
         return Detector.pretrained(args.weights, **options)
     return Detector.load(getattr(args, "checkpoint", None) or None, **options)
@@ -212,7 +213,7 @@ def cmd_benchmark(args) -> None:
     if args.weights or args.checkpoint:
         detector = _load_detector(args, any_scale=False)
     else:  # every shipped network, side by side
-        detector = benchmark.shipped_networks(upsample=args.upsample)
+        detector = benchmark.shipped_networks(upsample=args.upsample, refine=not args.no_refine)
     if args.any_scale:  # beside the single-scale rows, in the same run
         detector = benchmark.with_any_scale(detector)
     result = benchmark.benchmark(
@@ -359,6 +360,7 @@ def cmd_export(args) -> None:
         print(f"wrote {args.artifact} (jax.export, uint8 [b, {args.res[0]}, {args.res[1]}, 3])")
 
 
+            refine=detector.refine,
 def cmd_demo(args) -> None:
     from usp_jax.quickstart import demo
 

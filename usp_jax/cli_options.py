@@ -77,6 +77,15 @@ def _apply_ranges(parser: argparse.ArgumentParser) -> None:
                 action.help += f" (from {low} to {high})"
 
 
+def _add_no_refine(parser) -> None:
+    parser.add_argument(
+        "--no-refine",
+        action="store_true",
+        help="keep the network's raw positions: skip the sub-pixel refinement of each point"
+        " (inference.refine; for the ablation)",
+    )
+
+
 def _add_train(subparsers) -> None:
     """The ``train`` subcommand: data, workdir, config, distributed run and overrides."""
     p = subparsers.add_parser(
@@ -184,6 +193,7 @@ def _add_evaluate(subparsers) -> None:
     p.add_argument("--plots", help="folder for keypoint and match PNGs")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     _add_upsample(p)
+    _add_no_refine(p)
     _add_any_scale(p)
     _add_any_rotation(p)
 
@@ -285,6 +295,7 @@ def _add_benchmark(subparsers) -> None:
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.add_argument("--json", help="write the settings and every timed row as JSON here")
     _add_upsample(p)
+    _add_no_refine(p)
     _add_any_scale(p)
 
 
@@ -307,6 +318,7 @@ def _add_detect(subparsers) -> None:
     p.add_argument("--out", help="PNG with the keypoints drawn")
     p.add_argument("--json", help="keypoints, scores and descriptors as JSON")
     _add_upsample(p)
+    _add_no_refine(p)
     _add_any_scale(p)
 
 
@@ -329,6 +341,7 @@ def _add_match(subparsers) -> None:
     p.add_argument("--out", help="PNG of the inlier matches and image 1's border warped by H")
     p.add_argument("--json", help="homography, matches, inlier mask and keypoints as JSON")
     _add_upsample(p)
+    _add_no_refine(p)
     _add_any_scale(p)
     _add_any_rotation(p)
 
@@ -364,6 +377,7 @@ def _add_export(subparsers) -> None:
     )
     _add_nms_radius(p, 0.0, "artifact NMS radius in px (default 0)")
     _add_upsample(p)
+    _add_no_refine(p)
     _add_any_scale(p)
 
 
