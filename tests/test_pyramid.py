@@ -136,3 +136,17 @@ def test_a_textured_image_and_its_2x_enlargement_share_their_strongest_points(ph
 
     single_scale = agreement(found.keypoints[found.scales == CELL])
     assert agreement(found.keypoints) >= 0.9 > single_scale + 0.2
+
+
+def test_any_scale_combines_with_turning(variables, image):
+    """``--any-rotation`` detects image 2 turned (``turning.detect_turned``): with the pyramid,
+    a quarter turn gives the points of every level of the turned image, sizes kept."""
+    from usp_jax.inference.turning import detect_turned
+
+    detector = Detector(variables, SMALL_MODEL, any_scale=True)
+    turned = detect_turned(detector, image, 90.0)
+    expected = detector.detect(np.ascontiguousarray(np.rot90(image)), top_n=10**6)
+    assert len(turned.keypoints) == len(expected.keypoints)
+    np.testing.assert_allclose(np.sort(turned.scales), np.sort(expected.scales), rtol=1e-6)
+    height, width = image.shape[:2]
+    assert np.all(turned.keypoints > -1) and np.all(turned.keypoints < [width, height])

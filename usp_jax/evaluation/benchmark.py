@@ -54,10 +54,10 @@ def shipped_networks(**detector_options) -> dict[str, Detector]:
 
 def with_any_scale(detector: Detector | Mapping[str, Detector]) -> dict[str, Detector]:
     """Each detector beside its ``any_scale=True`` twin ("NAME any-scale"; a lone detector is
-    "single-scale"), so that one run times both."""
+    "single-scale" beside "any-scale"), so that one run times both."""
     detectors = {"single-scale": detector} if isinstance(detector, Detector) else dict(detector)
     twins = {
-        f"{name} any-scale": Detector(
+        "any-scale" if name == "single-scale" else f"{name} any-scale": Detector(
             d.variables,
             d.model_config,
             top_n=d.top_n,
