@@ -60,8 +60,7 @@ def _check_output_file(path: str | None, what: str) -> None:
 
 
 def _figure_file(path: str | None, what: str) -> str | None:
-    """The file a figure option writes (a bare name gets ``.png``, as matplotlib adds it),
-    checked like any output file, so that the path printed is the path written."""
+    """The file a figure option writes, checked: a bare name gets ``.png``, as matplotlib adds it."""
     if not path:
         return path
     from usp_jax.evaluation.plotting import figure_path
@@ -287,15 +286,9 @@ def cmd_match(args) -> None:
     if matching.homography is None:
         print("no homography: fewer than 4 matches, or RANSAC found none")
     elif homography is None:
-        print(
-            f"no reliable homography: {int(matching.inliers.sum())} RANSAC inliers, fewer than"
-            f" the {matching_lib.MIN_INLIERS} a homography needs to mean anything"
-        )
-        print(
-            "usp-jax match: warning: no reliable homography; the images may not show the same"
-            " scene, or show too little texture",
-            file=sys.stderr,
-        )
+        inliers = f"{int(matching.inliers.sum())} RANSAC inliers, under {matching_lib.MIN_INLIERS}"
+        print(f"no reliable homography: {inliers}; the images may not show one scene")
+        print(f"usp-jax match: warning: no reliable homography ({inliers})", file=sys.stderr)
     else:
         print("homography image1 -> image2:")
         print(np.array2string(homography, precision=6, suppress_small=True))
