@@ -105,18 +105,17 @@ def main() -> None:
     # The second file's model joins the first file's methods as one more, labelled, method.
     label = pathlib.Path(args.against).parent.name if args.against else ""
     joined = rows + ([] if new_rows is None else labelled(new_rows, label))
-    if args.rotation:
-        try:
-            rotation_table = by_rotation(joined, args.rotation)
-        except (OSError, ValueError) as error:
-            parser.error(f"--rotation {args.rotation}: {error}")
-        print("\n" + markdown_by_view(rotation_table, group="rotation (deg)"))
-    if args.zoom:
-        try:
-            zoom_table = by_zoom(joined, args.zoom)
-        except (OSError, ValueError) as error:
-            parser.error(f"--zoom {args.zoom}: {error}")
-        print("\n" + markdown_by_view(zoom_table, group="zoom"))
+    breakdowns = (
+        ("--rotation", args.rotation, by_rotation, "rotation (deg)"),
+        ("--zoom", args.zoom, by_zoom, "zoom"),
+    )
+    for flag, pairs, breakdown, group in breakdowns:
+        if pairs:
+            try:
+                table = breakdown(joined, pairs)
+            except (OSError, ValueError) as error:
+                parser.error(f"{flag} {pairs}: {error}")
+            print("\n" + markdown_by_view(table, group=group))
     if args.intervals:
         print("\n" + intervals_markdown(joined, args.rounds))
     if new_rows is not None:
