@@ -215,14 +215,21 @@ def test_an_image_too_large_for_the_free_memory_is_one_line_naming_max_side(
 
 
 @pytest.mark.parametrize("upsample", [1, 2])
-def test_the_memory_estimate_covers_what_xla_allocates(small_weights, upsample):
+def test_a_tight_fit_is_decided_by_xlas_own_figure(small_weights, monkeypatch, upsample):
     detector = inference.Detector.from_weights(small_weights, upsample=upsample, top_n=50)
-    images, sizes = np.zeros((1, 128, 160, 3), np.uint8), np.array([[128, 160]], np.int32)
+    side = memory.REFERENCE_SIDE
+    images, sizes = np.zeros((1, side, side, 3), np.uint8), np.array([[side, side]], np.int32)
     compiled = detector._forward.lower(detector.variables, images, sizes, top_n=50).compile()
     analysis = compiled.memory_analysis()
-    need = analysis.temp_size_in_bytes + analysis.output_size_in_bytes
-    estimate = memory.activation_bytes(SMALL_MODEL, 1, 128 * upsample, 160 * upsample)
-    assert need <= estimate <= 4 * need
+    need = analysis.temp_size_in_bytes + analysis.output_size_in_bytes  # of a 128x128 image
+    assert detector._bytes_per_pixel() * side**2 == pytest.approx(need)
+    monkeypatch.setattr(memory, "_FITTED", set())
+    shape = (1, side, side, 3)
+    monkeypatch.setattr(memory, "available_bytes", lambda: int(0.9 * need))
+    with pytest.raises(memory.ImageTooLarge):
+        memory.check_fits(SMALL_MODEL, shape, upsample, detector._bytes_per_pixel)
+    monkeypatch.setattr(memory, "available_bytes", lambda: int(1.5 * need))
+    memory.check_fits(SMALL_MODEL, shape, upsample, detector._bytes_per_pixel)
 
 
 def test_available_memory_is_read_from_the_system():

@@ -348,12 +348,12 @@ def cmd_export(args) -> None:
             nms_radius=args.nms,
             upsample=detector.upsample,
             any_scale=detector.any_scale,
+            refine=detector.refine,
         )
         export(detector, args.artifact, *args.res)
         print(f"wrote {args.artifact} (jax.export, uint8 [b, {args.res[0]}, {args.res[1]}, 3])")
 
 
-            refine=detector.refine,
 def cmd_demo(args) -> None:
     from usp_jax.quickstart import demo
 

@@ -33,7 +33,7 @@ from usp_jax.core.model import CELL, ModelConfig, UnsuperPoint
 from usp_jax.inference import pyramid, weights
 from usp_jax.inference import refine as refine_lib
 from usp_jax.inference.features import Features
-from usp_jax.inference.memory import check_fits
+from usp_jax.inference.memory import check_fits, measured_bytes_per_pixel
 from usp_jax.inference.nms import NEIGHBOUR_REACH, radius_nms
 
 # ---------------------------------------------------------------------------------------------
@@ -371,11 +371,17 @@ class Detector:
         sizes = np.tile(np.array(stack.shape[1:3], np.int32), (len(stack), 1))
         return self._call(_pad(stack), sizes, top_n)
 
+    def _bytes_per_pixel(self) -> float:
+        """XLA's memory need of this detector per input pixel (``memory.check_fits``), once."""
+        if not hasattr(self, "_measured"):
+            self._measured = measured_bytes_per_pixel(self._forward, self.variables, self.top_n)
+        return self._measured
+
     def _call(self, padded: np.ndarray, sizes: np.ndarray, top_n: int | None) -> list[Features]:
         top_n = self.top_n if top_n is None else _check_top_n(top_n)
         # Before compiling: an image too large for memory is one line naming max_side, not an
         # abort inside XLA.
-        check_fits(self.model_config, padded.shape, self.upsample)
+        check_fits(self.model_config, padded.shape, self.upsample, self._bytes_per_pixel)
         if self._pyramid is not None:
             return pyramid.detect_by_size(
                 self._pyramid, self.variables, padded, sizes, top_n, unbatch

@@ -78,21 +78,47 @@ def available_bytes() -> int | None:
 _FITTED: set[tuple] = set()
 
 
-def check_fits(model_config: ModelConfig, shape: tuple[int, ...], upsample: int = 1) -> None:
-    """Raises ImageTooLarge unless the network's activations on a uint8 [B, H, W, 3] batch of
-    ``shape``, enlarged ``upsample`` times, fit in the memory free now. The message names the
-    ``max_side`` (``--max-side``) at which they would."""
+#: Side of the image at which :func:`measured_bytes_per_pixel` asks XLA.
+REFERENCE_SIDE = 128
+#: Below this share of the free memory the network's own estimate decides alone: whatever the
+#: compiled function adds (the refinement, the pyramid) stays within it.
+_CLEAR_SHARE = 0.25
+
+
+def measured_bytes_per_pixel(forward, variables, top_n: int | None) -> float:
+    """XLA's own figure (``memory_analysis``: temporaries and outputs) for the jitted detector
+    function ``forward`` on one ``REFERENCE_SIDE`` square image, per input pixel. One small
+    compile; covers every stage the function runs."""
+    side = REFERENCE_SIDE
+    images = jax.ShapeDtypeStruct((1, side, side, 3), "uint8")
+    sizes = jax.ShapeDtypeStruct((1, 2), "int32")
+    analysis = forward.lower(variables, images, sizes, top_n=top_n).compile().memory_analysis()
+    return (analysis.temp_size_in_bytes + analysis.output_size_in_bytes) / side**2
+
+
+def check_fits(
+    model_config: ModelConfig, shape: tuple[int, ...], upsample: int = 1, measure=None
+) -> None:
+    """Raises ImageTooLarge unless the activations on a uint8 [B, H, W, 3] batch of ``shape``,
+    enlarged ``upsample`` times, fit in the memory free now. The network's estimate
+    (:func:`activation_bytes`) decides when it is far below the free memory; otherwise
+    ``measure()`` (bytes per input pixel, :func:`measured_bytes_per_pixel`) gives the need of
+    the whole compiled function. The message names the ``max_side`` (``--max-side``) at which
+    it would fit."""
     key = (model_config, tuple(shape), upsample)
     if key in _FITTED:
         return
     batch, height, width = shape[:3]
     need = activation_bytes(model_config, batch, height * upsample, width * upsample)
     free = available_bytes()
+    if free is not None and need > _CLEAR_SHARE * free and measure is not None:
+        need = int(_MARGIN * measure() * batch * height * width)
     if free is None or need <= free:
         _FITTED.add(key)
         return
     # The need grows with the pixel count: the side that fits, to whole cells.
-    side = max(CELL, int(max(height, width) * math.sqrt(free / need)) // CELL * CELL)
+    # A tenth below: smaller images pad to whole cells.
+    side = max(CELL, int(0.9 * max(height, width) * math.sqrt(free / need)) // CELL * CELL)
     images = f"{batch} images" if batch > 1 else "an image"
     raise ImageTooLarge(
         f"{images} of {width}x{height} px{f' enlarged {upsample}x' if upsample > 1 else ''}"
