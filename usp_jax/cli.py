@@ -113,7 +113,12 @@ def cmd_train(args) -> None:
     from usp_jax.training import distributed, train
 
     cfg = config_lib.assemble(
-        args.config, data=args.data, init=args.init, overrides=args.overrides, steps=args.steps
+        args.config,
+        data=args.data,
+        init=args.init,
+        teacher=args.teacher,
+        overrides=args.overrides,
+        steps=args.steps,
     )
     who = ""
     if _distributed(args):
