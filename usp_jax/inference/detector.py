@@ -188,7 +188,8 @@ class Detector:
     ``any_scale``: detect on an image pyramid too (``inference.pyramid``), for pairs that differ
     by zoom; each point's size is in ``Features.scales``; one function compiled per input size.
     ``refine``: move each point by the sub-pixel offset network of ``inference.refine`` (True:
-    the shipped one; a path: an ``.npz`` from ``refine.save_params``; False: the raw cells).
+    the shipped one; a path: an ``.npz`` from ``refine.save_params``; False: the raw cells;
+    None: the shipped one for the paper's network, which it was trained on, else none).
 
     The network runs in float32 on CPU (where bfloat16 convolutions are emulated and slower) and
     in ``model_config.dtype`` elsewhere. One function is compiled per padded input shape, batch
@@ -206,7 +207,7 @@ class Detector:
         upsample: int = 1,
         max_side: int = 0,
         any_scale: bool = False,
-        refine: bool | str | pathlib.Path = True,
+        refine: bool | str | pathlib.Path | None = None,
     ):
         _check_top_n(top_n)
         if not all(math.isfinite(v) and v >= 0 for v in (nms_radius, border)):
@@ -234,6 +235,10 @@ class Detector:
         self.border = float(border)
         self.upsample = int(upsample)
         self.max_side = int(max_side)
+        if refine is None:
+            # Trained on the paper network's upright points, it moves the fast and rotation
+            # networks' points off (a 120-degree turn no longer registers).
+            refine = model_config == dataclasses.replace(ModelConfig(), dtype=model_config.dtype)
         self.refine = refine
         self.refiner = (
             None if refine is False else refine_lib.load_params(None if refine is True else refine)
