@@ -150,3 +150,16 @@ def test_any_scale_combines_with_turning(variables, image):
     np.testing.assert_allclose(np.sort(turned.scales), np.sort(expected.scales), rtol=1e-6)
     height, width = image.shape[:2]
     assert np.all(turned.keypoints > -1) and np.all(turned.keypoints < [width, height])
+
+
+def test_an_exported_any_scale_detector_returns_the_same_points_and_sizes(
+    variables, image, tmp_path
+):
+    from usp_jax.inference.export import export, load_exported
+
+    detector = Detector(variables, SMALL_MODEL, any_scale=True, top_n=50)
+    export(detector, tmp_path / "pyramid.bin", *image.shape[:2])
+    (exported,) = load_exported(tmp_path / "pyramid.bin")(image[None])
+    expected = detector.detect(image)
+    np.testing.assert_allclose(exported.keypoints, expected.keypoints, atol=1e-4)
+    np.testing.assert_allclose(exported.scales, expected.scales)

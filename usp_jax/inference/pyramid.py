@@ -137,13 +137,18 @@ def detect_pyramid(
     return gather(keypoints), ranked, gather(descriptors), counts, gather(sizes)
 
 
+def pyramid_function(detect_level: Callable, nms_radius: float, border: float) -> Callable:
+    """:func:`detect_pyramid` as ``(variables, images, top_n=...)`` (for ``jax.export``, which
+    jits it itself)."""
+    return functools.partial(
+        detect_pyramid, detect_level=detect_level, nms_radius=nms_radius, border=border
+    )
+
+
 def compile_pyramid(detect_level: Callable, nms_radius: float, border: float) -> Callable:
-    """:func:`detect_pyramid` jitted: ``(variables, images, top_n=...)``, one compilation per
-    input shape and ``top_n``."""
+    """:func:`pyramid_function` jitted: one compilation per input shape and ``top_n``."""
     return jax.jit(
-        functools.partial(
-            detect_pyramid, detect_level=detect_level, nms_radius=nms_radius, border=border
-        ),
+        pyramid_function(detect_level, nms_radius, border),
         static_argnames="top_n",
         compiler_options=compiler_options(),
     )
