@@ -98,6 +98,7 @@ class _PlacedPoints(Detector):
         self.max_side = max_side
         self.top_n = None
         self.upsample = 1
+        self.any_scale = False
 
     def _call(self, padded, sizes, top_n):
         self.shape = tuple(sizes[0])

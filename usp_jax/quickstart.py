@@ -41,6 +41,8 @@ def demo(
     evaluation table; returns its results. ``weights_name``: shipped weights by name (None: the
     default); a named one that is missing is an error, not a reason to train."""
     start = time.perf_counter()
+    if weights_name is not None:
+        weights.pretrained_path(weights_name)  # an unknown name: one line, before any output
     out = pathlib.Path(out)
     out.mkdir(parents=True, exist_ok=True)
     print("[1/3] loading the model", file=sys.stderr)
