@@ -103,3 +103,14 @@ def photo():
     import skimage.data
 
     return skimage.data.astronaut()
+
+
+@pytest.fixture(scope="session")
+def small_weights(tmp_path_factory):
+    """A weights file of SMALL_MODEL at a fixed random init (what ``usp-jax export`` writes)."""
+    from usp_jax import inference
+    from usp_jax.core.model import init_variables
+
+    path = tmp_path_factory.mktemp("weights") / "small.npz"
+    inference.save_weights(path, init_variables(jax.random.PRNGKey(0), SMALL_MODEL), SMALL_MODEL)
+    return path

@@ -160,14 +160,6 @@ def test_a_workdir_in_a_read_only_folder_is_one_line(tmp_path, capsys, monkeypat
 # Weights files: shapes against their config, every value finite
 
 
-@pytest.fixture(scope="module")
-def weights(tmp_path_factory):
-    path = tmp_path_factory.mktemp("weights") / "w.npz"
-    variables = step_lib.init_variables(jax.random.PRNGKey(0), SMALL_MODEL)
-    inference.save_weights(path, variables, SMALL_MODEL)
-    return path
-
-
 def _rewrite(source, target, change):
     arrays = dict(np.load(source))
     change(arrays)
@@ -188,7 +180,7 @@ def _rewrite(source, target, change):
     ],
 )
 def test_a_bad_weights_file_is_one_line_naming_the_file_and_the_array(
-    case, message, weights, tmp_path, capsys
+    case, message, small_weights, tmp_path, capsys
 ):
     key = "params/descriptor/kernel"
 
@@ -207,7 +199,7 @@ def test_a_bad_weights_file_is_one_line_naming_the_file_and_the_array(
         else:
             arrays[key] = np.array(["a", "b"])
 
-    bad = _rewrite(weights, tmp_path / f"{case}.npz", change)
+    bad = _rewrite(small_weights, tmp_path / f"{case}.npz", change)
     with pytest.raises(ValueError) as info:
         inference.load_weights(bad)
     assert str(bad) in str(info.value) and message in str(info.value)
@@ -217,8 +209,8 @@ def test_a_bad_weights_file_is_one_line_naming_the_file_and_the_array(
     assert message in one_error_line(capsys, "detect")
 
 
-def test_good_weights_still_load(weights):
-    model_config, variables = inference.load_weights(weights)
+def test_good_weights_still_load(small_weights):
+    model_config, variables = inference.load_weights(small_weights)
     assert model_config == SMALL_MODEL and "batch_stats" in variables
 
 
@@ -261,8 +253,8 @@ def test_radius_nms_at_large_radii_matches_evaluation_nms_radius(radius, cell, g
     np.testing.assert_array_equal(np.flatnonzero(limited), np.sort(expected[:2]))
 
 
-def test_a_huge_nms_radius_keeps_one_point_per_image(weights, photo):
-    detector = inference.Detector.from_weights(weights, nms_radius=1e9, top_n=50)
+def test_a_huge_nms_radius_keeps_one_point_per_image(small_weights, photo):
+    detector = inference.Detector.from_weights(small_weights, nms_radius=1e9, top_n=50)
     assert len(detector.detect(photo[:96, :128]).keypoints) == 1
 
 

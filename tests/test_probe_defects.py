@@ -10,7 +10,6 @@ import re
 import shutil
 
 import cv2
-import jax
 import numpy as np
 import pytest
 from conftest import SMALL_MODEL, TINY_RUN, tiny_config
@@ -23,7 +22,6 @@ from usp_jax.evaluation import sequences
 from usp_jax.inference import matching as matching_lib
 from usp_jax.inference import memory
 from usp_jax.training import checkpoint, train
-from usp_jax.training import step as step_lib
 from usp_jax.training import workdir as workdir_lib
 
 
@@ -43,14 +41,6 @@ def snapshot(folder):
 
 def write_rgb(path, image):
     assert cv2.imwrite(str(path), cv2.cvtColor(image, cv2.COLOR_RGB2BGR))
-    return path
-
-
-@pytest.fixture(scope="module")
-def small_weights(tmp_path_factory):
-    path = tmp_path_factory.mktemp("weights") / "small.npz"
-    variables = step_lib.init_variables(jax.random.PRNGKey(0), SMALL_MODEL)
-    inference.save_weights(path, variables, SMALL_MODEL)
     return path
 
 
