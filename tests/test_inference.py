@@ -442,3 +442,12 @@ def test_each_shipped_weights_file_recovers_a_known_homography(name, turn, photo
     found = inference.match_and_estimate(detector.detect(photo), detector.detect(warped))
     assert found.homography is not None
     assert evaluation.corner_error(truth, found.homography, (512, 512)) < 3
+
+
+def test_replace_changes_only_the_options_it_is_given(variables):
+    original = Detector(variables, SMALL_MODEL, top_n=9, nms_radius=2, border=1, max_side=64)
+    copy = original.replace(upsample=2, refine=False)
+    options = ("top_n", "nms_radius", "border", "max_side", "any_scale")
+    assert [getattr(copy, o) for o in options] == [getattr(original, o) for o in options]
+    assert (copy.upsample, copy.refine, copy.refiner) == (2, False, None)
+    assert copy.model_config == original.model_config

@@ -334,7 +334,6 @@ def cmd_match(args) -> None:
 
 def cmd_export(args) -> None:
     from usp_jax.inference import weights
-    from usp_jax.inference.detector import Detector
     from usp_jax.inference.export import export
 
     if not (args.save_weights or args.artifact):
@@ -348,15 +347,7 @@ def cmd_export(args) -> None:
         weights.save_weights(args.save_weights, detector.variables, detector.model_config)
         print(f"wrote {args.save_weights} (float16)")
     if args.artifact:
-        detector = Detector(
-            detector.variables,
-            detector.model_config,
-            top_n=args.top,
-            nms_radius=args.nms,
-            upsample=detector.upsample,
-            any_scale=detector.any_scale,
-            refine=detector.refine,
-        )
+        detector = detector.replace(top_n=args.top, nms_radius=args.nms)
         export(detector, args.artifact, *args.res)
         print(f"wrote {args.artifact} (jax.export, uint8 [b, {args.res[0]}, {args.res[1]}, 3])")
 

@@ -57,15 +57,7 @@ def with_any_scale(detector: Detector | Mapping[str, Detector]) -> dict[str, Det
     "single-scale" beside "any-scale"), so that one run times both."""
     detectors = {"single-scale": detector} if isinstance(detector, Detector) else dict(detector)
     twins = {
-        "any-scale" if name == "single-scale" else f"{name} any-scale": Detector(
-            d.variables,
-            d.model_config,
-            top_n=d.top_n,
-            nms_radius=d.nms_radius,
-            border=d.border,
-            upsample=d.upsample,
-            any_scale=True,
-        )
+        "any-scale" if name == "single-scale" else f"{name} any-scale": d.replace(any_scale=True)
         for name, d in detectors.items()
     }
     return {**detectors, **twins}

@@ -67,13 +67,7 @@ def as_method(
 
     With a rotation-invariant ``guide`` the method matches across any rotation: image 2 is
     detected turned back by the angle the guide estimates (``turning.detect_pair``)."""
-    every_point = Detector(
-        detector.variables,
-        detector.model_config,
-        upsample=detector.upsample,
-        any_scale=detector.any_scale,
-        refine=detector.refine,
-    )
+    every_point = detector.replace(top_n=None, nms_radius=0, border=0, max_side=0)
     if guide is None:
         return Method(name, every_point.detect, cv2.NORM_L2)
 

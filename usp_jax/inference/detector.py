@@ -261,6 +261,20 @@ class Detector:
             else None
         )
 
+    def replace(self, **changes) -> Detector:
+        """A detector of the same weights with ``changes`` to its options (``__init__``'s
+        keywords); every other option, ``refine`` as resolved here included, is this one's."""
+        options = dict(
+            top_n=self.top_n,
+            nms_radius=self.nms_radius,
+            border=self.border,
+            upsample=self.upsample,
+            max_side=self.max_side,
+            any_scale=self.any_scale,
+            refine=self.refine,
+        )
+        return Detector(self.variables, self.model_config, **{**options, **changes})
+
     @classmethod
     def from_checkpoint(cls, path: str | pathlib.Path, **options) -> Detector:
         """From the latest checkpoint of a training workdir, its ``checkpoints/`` or a step."""
