@@ -92,6 +92,15 @@ def _add_any_scale(parser) -> None:
     )
 
 
+def _add_no_refine(parser) -> None:
+    parser.add_argument(
+        "--no-refine",
+        action="store_true",
+        help="keep the network's raw positions: skip the sub-pixel refinement of each point"
+        " (inference.refine; for the ablation)",
+    )
+
+
 def _add_upsample(parser) -> None:
     # SIFT doubles its input for the same reason: the positions come back finer (RESULTS.md).
     parser.add_argument(

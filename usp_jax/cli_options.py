@@ -15,6 +15,7 @@ from usp_jax.cli_arguments import (  # noqa: F401 (cli_track builds on them too)
     _add_checkpoint,
     _add_max_side,
     _add_nms_radius,
+    _add_no_refine,
     _add_upsample,
     _add_weights_name,
     _non_negative,
@@ -75,15 +76,6 @@ def _apply_ranges(parser: argparse.ArgumentParser) -> None:
             action.type = _in_range(action.type, low, high)
             if action.help and action.choices is None and f"{low} to " not in action.help:
                 action.help += f" (from {low} to {high})"
-
-
-def _add_no_refine(parser) -> None:
-    parser.add_argument(
-        "--no-refine",
-        action="store_true",
-        help="keep the network's raw positions: skip the sub-pixel refinement of each point"
-        " (inference.refine; for the ablation)",
-    )
 
 
 def _add_train(subparsers) -> None:
