@@ -264,6 +264,69 @@ def _write_manifest(out_dir: Path, settings: dict, scenes: Sequence[str], comple
     partial.replace(out_dir / MANIFEST)
 
 
+def _view_window(
+    height: int, width: int, rotated: bool, zoom: tuple[float, float] | None
+) -> tuple[int, int]:
+    """The region of the photo views are cut from, in the [height, width] frame in which
+    sample_homography works: the frame itself, or with rotation a window around it that holds
+    REFERENCE_VIEW's patch, enlarged to the middle of the views' scale range, turned by any angle
+    (a larger window would make rejection depend even less on the angle, at the price of
+    enlarging the photo further); with zoom out, room for the largest zoomed-out patch."""
+    if rotated:
+        middle_scale = 1 + HARDEST_VIEW.scaling / 2
+        side = math.ceil(REFERENCE_VIEW.patch_ratio * middle_scale * math.hypot(height, width))
+        window = (max(height, side), max(width, side))
+    else:
+        window = (height, width)
+    if zoom is not None and zoom[0] < 1:
+        # About the frame's size / zoom around image 1.
+        reach = 1.5 / zoom[0]
+        window = (
+            max(window[0], math.ceil(height * reach)),
+            max(window[1], math.ceil(width * reach)),
+        )
+    return window
+
+
+def _sample_frames(
+    key: jax.Array,
+    configs: Sequence[HomographyConfig],
+    turns: Sequence[float] | None,
+    height: int,
+    width: int,
+    window: tuple[int, int],
+) -> list[np.ndarray]:
+    """One scene's homographies [3, 3] (float64), image k's from ``fold_in(key, k)`` and
+    ``configs[k - 1]``; with ``turns`` (degrees, images 2..N) each view past the first is also
+    turned by its angle and cut from ``window``.
+
+    Called eagerly on purpose: under jit every strength would be a separate compilation, while
+    op-by-op dispatch compiles each primitive once and then takes milliseconds per view."""
+    if turns is None:
+        return [
+            np.asarray(
+                sample_homography(jax.random.fold_in(key, k), height, width, config), np.float64
+            )
+            for k, config in enumerate(configs, start=1)
+        ]
+    frames = [
+        np.asarray(
+            sample_homography(jax.random.fold_in(key, 1), height, width, configs[0]), np.float64
+        )
+    ]
+    for k, (config, turn) in enumerate(zip(configs[1:], turns), start=2):
+        # The pair's own rotation range, centred on the extra angle: the two compose.
+        own = math.degrees(config.max_angle)
+        config = dataclasses.replace(config, rotation_range=(turn - own, turn + own))
+        frames.append(
+            np.asarray(
+                sample_window_homography(jax.random.fold_in(key, k), height, width, window, config),
+                np.float64,
+            )
+        )
+    return frames
+
+
 def make_pairs(
     images: str | Path | Iterable[str | Path],
     out_dir: str | Path,
@@ -334,23 +397,7 @@ def make_pairs(
         "zoom": None if zoom is None else list(zoom),
         "sources": [str(path) for path in sources],
     }
-    # The region of the photo views are cut from, in the [height, width] frame in which sample_homography
-    # works: the frame itself, or with rotation a window around it that holds REFERENCE_VIEW's patch,
-    # enlarged to the middle of the views' scale range, turned by any angle. A larger window would make
-    # rejection depend even less on the angle, at the price of enlarging the photo further.
-    if rotated:
-        middle_scale = 1 + HARDEST_VIEW.scaling / 2
-        side = math.ceil(REFERENCE_VIEW.patch_ratio * middle_scale * math.hypot(height, width))
-        window = (max(height, side), max(width, side))
-    else:
-        window = (height, width)
-    if zoom is not None and zoom[0] < 1:
-        # Room for the largest zoomed-out patch (about the frame's size / zoom) around image 1.
-        reach = 1.5 / zoom[0]
-        window = (
-            max(window[0], math.ceil(height * reach)),
-            max(window[1], math.ceil(width * reach)),
-        )
+    window = _view_window(height, width, rotated, zoom)
     # The photo is prepared at the size whose REFERENCE_VIEW crop has the output size: views are then
     # resampled about 1:1 instead of enlarged. Its pixel frame is mapped onto the window, and the window onto
     # the frame; that mapping cancels in H_1_k = Hk @ inv(H1).
@@ -377,37 +424,14 @@ def make_pairs(
             warnings.warn(f"skipping unreadable image {path}", stacklevel=2)
             continue
         key = jax.random.fold_in(jax.random.PRNGKey(seed), index)
-        # Called eagerly on purpose: under jit every strength would be a separate compilation, while op-by-op
-        # dispatch compiles each primitive once and then takes milliseconds per view.
-        if rotated:
-            turns = pair_rotations(
+        turns = (
+            pair_rotations(
                 index, num_views, seed=seed, rotation=rotation, rotation_angles=rotation_angles
             )
-            frames = [
-                np.asarray(
-                    sample_homography(jax.random.fold_in(key, 1), height, width, REFERENCE_VIEW),
-                    np.float64,
-                )
-            ]
-            for k, (config, turn) in enumerate(zip(configs[1:], turns), start=2):
-                # The pair's own rotation range, centred on the extra angle: the two compose.
-                own = math.degrees(config.max_angle)
-                config = dataclasses.replace(config, rotation_range=(turn - own, turn + own))
-                frames.append(
-                    np.asarray(
-                        sample_window_homography(
-                            jax.random.fold_in(key, k), height, width, window, config
-                        ),
-                        np.float64,
-                    )
-                )
-        else:
-            frames = [
-                np.asarray(
-                    sample_homography(jax.random.fold_in(key, k), height, width, config), np.float64
-                )
-                for k, config in enumerate(configs, start=1)
-            ]
+            if rotated
+            else None
+        )
+        frames = _sample_frames(key, configs, turns, height, width, window)
         zooms = [1.0] + [
             fitting_zoom(frame @ to_frame, z, height, width, photo.shape)
             for frame, z in zip(frames[1:], pair_zooms(index, num_views, zoom, seed=seed))
