@@ -85,10 +85,15 @@ class Recording:
 
 def methods(top: int, networks: list[str], baselines: list[str]) -> dict[str, object]:
     found = {}
-    for network in networks:  # NAME or NAME:SIDE, the network on frames shrunk to SIDE px
-        name, _, side = network.partition(":")
-        label = f"UnsuperPoint {name}" + (f" at {side} px" if side else "")
-        found[label] = Detector.pretrained(name, top_n=top, nms_radius=4, max_side=int(side or 0))
+    for network in networks:  # NAME[:SIDE][+refine|-refine], as --networks' help says
+        spec, sign = network.removesuffix("+refine").removesuffix("-refine"), network[-7:-6]
+        refine = {"+": True, "-": False}.get(sign) if spec != network else None
+        name, _, side = spec.partition(":")
+        label = f"UnsuperPoint {network}" if spec != network else f"UnsuperPoint {name}"
+        label += f" at {side} px" if side and spec == network else ""
+        found[label] = Detector.pretrained(
+            name, top_n=top, nms_radius=4, max_side=int(side or 0), refine=refine
+        )
     for name in baselines:
         try:
             found[name] = baseline_method(name, top)
@@ -156,7 +161,7 @@ def plot(rows: dict, path: str, title: str) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    figure, (left, middle, right) = plt.subplots(1, 3, figsize=(15, 4.2))
+    figure, (left, middle, right) = plt.subplots(1, 3, figsize=(15, 4.6))
     for name, row in rows.items():
         left.plot(GAPS, [row["inliers"][g]["mean"] for g in GAPS], "o-", label=name)
         lengths = np.sort(row["track_lengths"])
@@ -167,23 +172,25 @@ def plot(rows: dict, path: str, title: str) -> None:
         xticks=GAPS,
         title="inliers against frame gap",
     )
-    left.legend()
     middle.set(
         xlabel="track length (frames)",
         ylabel="share of tracks at least this long",
         title="track lengths (tracks seen twice or more)",
     )
     names = list(rows)
-    right.barh(names, [rows[n]["ms_per_frame"] for n in names])
+    colours = [line.get_color() for line in left.get_lines()]
+    right.barh(names, [rows[n]["ms_per_frame"] for n in names], color=colours)
     right.invert_yaxis()
     right.set(xlabel="ms per frame, whole loop (median)", title="time per frame")
     figure.suptitle(title)
-    figure.tight_layout()
+    # One legend under all three panels: inside any of them it hides the curves.
+    figure.legend(*left.get_legend_handles_labels(), loc="lower center", ncol=len(rows))
+    figure.tight_layout(rect=(0, 0.08, 1, 1))
     figure.savefig(path, dpi=90)
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(description=" ".join(__doc__.split("\n\n")[0].split()))
     parser.add_argument("video", help="the footage (box.mp4 of opencv-doc, module docstring)")
     parser.add_argument("--windows", type=int, default=3, help="windows of consecutive frames")
     parser.add_argument("--length", type=int, default=20, help="frames per window")
@@ -193,9 +200,15 @@ def main() -> None:
         nargs="+",
         default=["paper"],
         help="shipped weights by name; NAME:SIDE detects on frames shrunk to SIDE px on their"
-        " longer side (keypoints in the frame's pixels, matched as the others)",
+        " longer side (keypoints in the frame's pixels, matched as the others); a +refine or"
+        " -refine suffix turns the sub-pixel refinement on or off (default: the weights' own)",
     )
-    parser.add_argument("--baselines", nargs="*", default=["ORB", "AKAZE", "SIFT", "XFeat"])
+    parser.add_argument(
+        "--baselines",
+        nargs="*",
+        default=["ORB", "AKAZE", "SIFT", "XFeat"],
+        help="peer detectors through the same tracker (default: %(default)s; XFeat where installed)",
+    )
     parser.add_argument("--json", help="write the numbers here")
     parser.add_argument("--plot", help="write the figure here (PNG)")
     args = parser.parse_args()

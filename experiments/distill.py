@@ -20,6 +20,8 @@ The ablation at equal CPU time (``ablation_distill_only`` and ``ablation_self_on
         --workdir runs/distill-only
     usp-jax train --config experiments/distill.py:ablation_self_only --data data/corpus/train \\
         --workdir runs/self-only
+    usp-jax train --config experiments/distill.py:ablation_no_position --data data/corpus/train \\
+        --workdir runs/distill-nopos
 """
 
 import dataclasses
@@ -75,3 +77,9 @@ def ablation_distill_only() -> config_lib.Config:
 def ablation_self_only() -> config_lib.Config:
     """The paper's losses alone, from the same start: what the extra steps alone would give."""
     return _student(["distill.teacher=", f"num_steps={SELF_ONLY_STEPS}"])
+
+
+def ablation_no_position() -> config_lib.Config:
+    """Both signals without the teacher's positions (``beta_position=0``): the student keeps its
+    own point in each cell and learns the teacher's scores and descriptor similarities."""
+    return _student(["distill.beta_position=0", f"num_steps={ABLATION_STEPS}"])

@@ -1,4 +1,4 @@
-"""The Python blocks of the README and docs/cli.md run as pasted: every name defined, every
+"""The Python blocks of the README, docs/api.md and docs/cli.md run as pasted: every name defined, every
 module imported, the shapes and dtypes they state what the code takes."""
 
 import pathlib
@@ -32,12 +32,14 @@ def python_blocks(path: pathlib.Path) -> list[str]:
 
 def test_python_blocks_are_found():
     assert python_blocks(ROOT / "README.md")
+    assert len(python_blocks(ROOT / "docs" / "api.md")) == 1
     assert len(python_blocks(ROOT / "docs" / "cli.md")) == 1
 
 
 @pytest.mark.slow
-def test_readme_python_blocks_run_as_pasted_in_a_fresh_interpreter(tmp_path):
-    for block in python_blocks(ROOT / "README.md"):
+@pytest.mark.parametrize("document", ["README.md", "docs/api.md"])
+def test_python_blocks_run_as_pasted_in_a_fresh_interpreter(document, tmp_path):
+    for block in python_blocks(ROOT / document):
         done = subprocess.run(
             [sys.executable, "-c", SMALL_PHOTOS + block],
             cwd=tmp_path,
@@ -46,7 +48,7 @@ def test_readme_python_blocks_run_as_pasted_in_a_fresh_interpreter(tmp_path):
             text=True,
             timeout=600,
         )
-        assert done.returncode == 0, f"README block failed:\n{block}\n{done.stderr[-3000:]}"
+        assert done.returncode == 0, f"{document} block failed:\n{block}\n{done.stderr[-3000:]}"
 
 
 def test_docs_artifact_example_loads_and_runs_an_exported_detector(tmp_path, monkeypatch):
