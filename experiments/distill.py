@@ -22,6 +22,8 @@ The ablation at equal CPU time (``ablation_distill_only`` and ``ablation_self_on
         --workdir runs/self-only
     usp-jax train --config experiments/distill.py:ablation_no_position --data data/corpus/train \\
         --workdir runs/distill-nopos
+    usp-jax train --config experiments/distill.py:ablation_descriptor_only --data data/corpus/train \\
+        --workdir runs/distill-desc
 """
 
 import dataclasses
@@ -83,3 +85,11 @@ def ablation_no_position() -> config_lib.Config:
     """Both signals without the teacher's positions (``beta_position=0``): the student keeps its
     own point in each cell and learns the teacher's scores and descriptor similarities."""
     return _student(["distill.beta_position=0", f"num_steps={ABLATION_STEPS}"])
+
+
+def ablation_descriptor_only() -> config_lib.Config:
+    """The paper's losses and the teacher's descriptor similarities only (score and position
+    terms weighted 0): whether the teacher's scores are what costs the student repeatability."""
+    return _student(
+        ["distill.beta_position=0", "distill.beta_score=0", f"num_steps={ABLATION_STEPS}"]
+    )

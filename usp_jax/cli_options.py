@@ -25,6 +25,7 @@ from usp_jax.cli_arguments import (  # noqa: F401 (cli_track builds on them too)
     _zoom_range,
 )
 from usp_jax.inference.detector import MAX_SIDE
+from usp_jax.inference.weights import PRETRAINED
 
 #: The range of every numeric option, by flag: checked where it is parsed, before anything runs,
 #: and shown in its help (tests sweep every option with absurd values). Beyond them a command
@@ -98,7 +99,7 @@ def _add_train(subparsers) -> None:
         "--teacher",
         metavar="NAME|PATH",
         help="distil a frozen teacher into the trained network (sets distill.teacher): shipped"
-        " weights by name (paper, fast, rotation), a .npz weights file or a training workdir;"
+        f" weights by name ({', '.join(PRETRAINED)}), a .npz weights file or a training workdir;"
         " its scores, positions and descriptors on both branches become targets beside the"
         " paper's losses (weights: distill.alpha_self, distill.beta_*; see experiments/distill.py)",
     )
