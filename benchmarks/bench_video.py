@@ -83,16 +83,29 @@ class Recording:
         return features
 
 
+def network_spec(spec: str) -> tuple[str, int, bool | None, str]:
+    """``NAME[:SIDE][+refine|-refine]`` -> (weights name, longest side (0: the frame's), refine
+    (None: the weights' own default), row label)."""
+    name, refine = spec, None
+    for suffix, value in (("+refine", True), ("-refine", False)):
+        if spec.endswith(suffix):
+            name, refine = spec.removesuffix(suffix), value
+    name, _, side = name.partition(":")
+    label = f"UnsuperPoint {name}" + (f" at {side} px" if side else "")
+    return (
+        name,
+        int(side or 0),
+        refine,
+        label + {True: " +refine", False: " -refine"}.get(refine, ""),
+    )
+
+
 def methods(top: int, networks: list[str], baselines: list[str]) -> dict[str, object]:
     found = {}
-    for network in networks:  # NAME[:SIDE][+refine|-refine], as --networks' help says
-        spec, sign = network.removesuffix("+refine").removesuffix("-refine"), network[-7:-6]
-        refine = {"+": True, "-": False}.get(sign) if spec != network else None
-        name, _, side = spec.partition(":")
-        label = f"UnsuperPoint {network}" if spec != network else f"UnsuperPoint {name}"
-        label += f" at {side} px" if side and spec == network else ""
+    for network in networks:
+        name, side, refine, label = network_spec(network)
         found[label] = Detector.pretrained(
-            name, top_n=top, nms_radius=4, max_side=int(side or 0), refine=refine
+            name, top_n=top, nms_radius=4, max_side=side, refine=refine
         )
     for name in baselines:
         try:
@@ -212,6 +225,8 @@ def main() -> None:
     parser.add_argument("--json", help="write the numbers here")
     parser.add_argument("--plot", help="write the figure here (PNG)")
     args = parser.parse_args()
+    if args.length <= max(GAPS):  # every gap needs a pair inside a window
+        parser.error(f"--length must be above the largest frame gap, {max(GAPS)}")
 
     print(common.environment())
     frames = read_video(args.video)
