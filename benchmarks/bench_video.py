@@ -91,19 +91,17 @@ def network_spec(spec: str) -> tuple[str, int, bool | None, str]:
         if spec.endswith(suffix):
             name, refine = spec.removesuffix(suffix), value
     name, _, side = name.partition(":")
+    if side and not side.isdigit():
+        raise ValueError(f"{spec!r}: SIDE in NAME:SIDE is a whole number of pixels")
     label = f"UnsuperPoint {name}" + (f" at {side} px" if side else "")
-    return (
-        name,
-        int(side or 0),
-        refine,
-        label + {True: " +refine", False: " -refine"}.get(refine, ""),
-    )
+    label += {True: " +refine", False: " -refine", None: ""}[refine]
+    return name, int(side or 0), refine, label
 
 
-def methods(top: int, networks: list[str], baselines: list[str]) -> dict[str, object]:
+def methods(top: int, networks: list[tuple], baselines: list[str]) -> dict[str, object]:
+    """``networks``: :func:`network_spec`'s tuples."""
     found = {}
-    for network in networks:
-        name, side, refine, label = network_spec(network)
+    for name, side, refine, label in networks:
         found[label] = Detector.pretrained(
             name, top_n=top, nms_radius=4, max_side=side, refine=refine
         )
@@ -227,6 +225,10 @@ def main() -> None:
     args = parser.parse_args()
     if args.length <= max(GAPS):  # every gap needs a pair inside a window
         parser.error(f"--length must be above the largest frame gap, {max(GAPS)}")
+    try:  # before minutes of reading and compiling
+        networks = [network_spec(spec) for spec in args.networks]
+    except ValueError as error:
+        parser.error(f"--networks {error}")
 
     print(common.environment())
     frames = read_video(args.video)
@@ -238,7 +240,7 @@ def main() -> None:
         f"{args.video}: {len(frames)} frames {width}x{height}, shot cuts at {cuts or 'none'};"
         f" windows {', '.join(f'{w[0]}-{w[-1]}' for w in windows)}; load {os.getloadavg()[0]:.1f}"
     )
-    rows = run(frames, windows, cuts, methods(args.top, args.networks, args.baselines))
+    rows = run(frames, windows, cuts, methods(args.top, networks, args.baselines))
     print(
         f"{'method':20s}"
         + "".join(f"  gap {g:2d}: mean (least)" for g in GAPS)

@@ -26,3 +26,8 @@ def bench_video(monkeypatch):
 )
 def test_network_spec_reads_name_side_and_refinement(bench_video, spec, expected):
     assert bench_video.network_spec(spec) == expected
+
+
+def test_network_spec_refuses_a_side_that_is_no_whole_number(bench_video):
+    with pytest.raises(ValueError, match="whole number"):
+        bench_video.network_spec("fast:abc")

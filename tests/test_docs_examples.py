@@ -1,5 +1,5 @@
-"""The Python blocks of the README, docs/api.md and docs/cli.md run as pasted: every name defined, every
-module imported, the shapes and dtypes they state what the code takes."""
+"""The Python blocks of the README, docs/api.md and docs/cli.md run as pasted: every name
+defined, every module imported, the shapes and dtypes they state what the code takes."""
 
 import pathlib
 import re
