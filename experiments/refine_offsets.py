@@ -3,6 +3,8 @@ frozen shipped detector.
 
     python3 experiments/refine_offsets.py --photos data/corpus/train --out usp_jax/weights/refine.npz
 
+``--weights distilled`` trains one for the distilled network's points instead.
+
 Pairs: a random 240x320 crop A of a training photo and B = H(A), H drawn from the training
 homographies (paper section 3, ``core.geometry.sample_homography``), B's brightness, contrast
 and gamma changed. The frozen detector (``Detector.pretrained(refine=False)``) finds points in
@@ -65,10 +67,11 @@ def _patches(image, keypoints):
     return refine.sample_patches(refine.grey(image.astype(jnp.float32) / 255.0), keypoints)
 
 
-def build(photos, pairs, radius, seed):
-    """Patches [N, 2, P, P], points [N, 2, 2] and homographies [N, 3, 3] of every point pair."""
+def build(photos, pairs, radius, seed, weights=None):
+    """Patches [N, 2, P, P], points [N, 2, 2] and homographies [N, 3, 3] of every point pair
+    the ``weights`` (shipped name; None: the default) find."""
     rng = np.random.default_rng(seed)
-    detector = Detector.pretrained(top_n=500, refine=False)
+    detector = Detector.pretrained(weights, top_n=500, refine=False)
     key = jax.random.PRNGKey(seed)
     patches, points, homographies = [], [], []
     for i in range(pairs):
@@ -104,6 +107,9 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--photos", required=True, help="folder of training photos")
     parser.add_argument("--out", required=True, help="the trained OffsetNet's .npz")
+    parser.add_argument(
+        "--weights", help="the frozen detector's shipped weights (default: the package's)"
+    )
     parser.add_argument("--pairs", type=int, default=300, help="image pairs drawn")
     parser.add_argument("--radius", type=float, default=3.0, help="point-pair distance, px")
     parser.add_argument("--steps", type=int, default=4000)
@@ -126,7 +132,9 @@ def main() -> None:
         with np.load(args.cache) as data:
             patches, points, homographies = data["patches"], data["points"], data["homographies"]
     else:
-        patches, points, homographies = build(photos, args.pairs, args.radius, args.seed)
+        patches, points, homographies = build(
+            photos, args.pairs, args.radius, args.seed, args.weights
+        )
         if args.cache:
             np.savez(args.cache, patches=patches, points=points, homographies=homographies)
     held = np.arange(len(points)) % 10 == 0

@@ -1,8 +1,12 @@
-"""benchmarks/bench_video.py's network specs: what each --networks entry runs."""
+"""benchmarks/bench_video.py's method specs: what each --networks and --baselines entry runs."""
 
 import pathlib
 
+import cv2
+import numpy as np
 import pytest
+
+from usp_jax.evaluation.baselines import opencv_method
 
 BENCHMARKS = pathlib.Path(__file__).resolve().parents[1] / "benchmarks"
 
@@ -31,3 +35,16 @@ def test_network_spec_reads_name_side_and_refinement(bench_video, spec, expected
 def test_network_spec_refuses_a_side_that_is_no_whole_number(bench_video):
     with pytest.raises(ValueError, match="whole number"):
         bench_video.network_spec("fast:abc")
+
+
+def test_a_shrunk_peer_detects_on_the_resized_frame_in_the_frames_pixels(bench_video, photo):
+    """``SIFT:SIDE``: SIFT on the frame resized by OpenCV, its points scaled back about pixel
+    corners, so that every method is matched in the frame's pixels."""
+    frame = np.ascontiguousarray(photo[:300, :400])
+    sift = opencv_method("SIFT", 300)
+    small = cv2.resize(frame, (200, 150), interpolation=cv2.INTER_AREA)
+    expected = sift.detect(small)
+    found = bench_video.Shrunk(sift, 200).detect(frame)
+    np.testing.assert_allclose(found.keypoints, (expected.keypoints + 0.5) * 2 - 0.5, atol=1e-4)
+    np.testing.assert_array_equal(found.descriptors, expected.descriptors)
+    assert bench_video.sided("SIFT:200") == ("SIFT", 200)

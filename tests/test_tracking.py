@@ -5,6 +5,7 @@ and track ids on controlled matches, and every bad input ends in one line and no
 import json
 
 import cv2
+import jax
 import numpy as np
 import pytest
 
@@ -184,6 +185,39 @@ def test_cli_tracks_a_tiny_video_into_json_tracks_and_an_annotated_video(
     )
 
 
+@pytest.mark.parametrize(
+    "options, expected",
+    [
+        ([], ("distilled", tracking.VIDEO_SIDE)),
+        (["--weights", "paper", "--network-side", "0"], ("paper", 0)),
+    ],
+)
+def test_cli_network_defaults_to_the_distilled_weights_at_480_px(
+    frames, tmp_path, monkeypatch, options, expected
+):
+    """``track``'s own default is the real-time one (``tracking.default_detector``), not the
+    package's ``paper``; ``--weights`` and ``--network-side`` override it."""
+    loaded = []
+    pretrained = Detector.pretrained.__func__
+
+    def recording(cls, name=None, **kwargs):
+        loaded.append((name, kwargs["max_side"]))
+        return pretrained(cls, name, **kwargs)
+
+    monkeypatch.setattr(Detector, "pretrained", classmethod(recording))
+    _write_video(source := tmp_path / "tiny.avi", frames[:2])
+    assert main(["track", str(source), "--no-progress", "--top", "50", *options]) == 0
+    assert loaded == [expected]
+    monkeypatch.undo()
+    default = tracking.default_detector()
+    assert (default.max_side, default.top_n) == (tracking.VIDEO_SIDE, tracking.TOP_N)
+    distilled = Detector.pretrained("distilled").variables
+    assert all(
+        np.array_equal(a, b)
+        for a, b in zip(jax.tree.leaves(default.variables), jax.tree.leaves(distilled))
+    )
+
+
 def test_cli_png_strip_and_every(frames, tmp_path, capsys):
     for k, frame in enumerate(frames):
         cv2.imwrite(str(tmp_path / f"{k:03d}.png"), cv2.cvtColor(frame, cv2.COLOR_RGB2BGR))
@@ -215,6 +249,10 @@ def _bad_inputs(tmp_path, frames):
         ),
         "an --out of no known kind": ([str(sizes), "--out", str(tmp_path / "o.gif")], "'.gif'"),
         "--weights with an OpenCV method": ([str(sizes), "--weights", "fast"], "only apply"),
+        "--network-side with an OpenCV method": (
+            [str(sizes), "--network-side", "320"],
+            "--network-side only apply",
+        ),
     }
 
 
@@ -230,6 +268,7 @@ def _bad_inputs(tmp_path, frames):
         "an unwritable --out",
         "an --out of no known kind",
         "--weights with an OpenCV method",
+        "--network-side with an OpenCV method",
     ],
 )
 def test_bad_input_is_one_line_exit_2_and_writes_nothing(frames, tmp_path, capsys, case):

@@ -128,16 +128,20 @@ def _add_any_rotation(parser) -> None:
     )
 
 
-def _add_weights_name(parser) -> None:
+def _add_weights_name(parser, default: str = DEFAULT_PRETRAINED, why: str = "") -> None:
+    """``--weights NAME``; ``default`` (and ``why``) only for the help: ``None`` still means
+    "not given", so that ``--checkpoint`` can exclude it."""
+    why = why or "the best on the held-out pairs"
     parser.add_argument(
         "--weights",
         metavar="NAME",
-        help=f"shipped weights by name: {', '.join(PRETRAINED)} (default {DEFAULT_PRETRAINED},"
-        " the best on the held-out pairs; README's 'Which weights' table says which suits what)",
+        help=f"shipped weights by name: {', '.join(PRETRAINED)} (default {default}, {why};"
+        " README's 'Which weights' table says which suits what)",
     )
 
 
-def _add_checkpoint(parser) -> None:
+def _add_checkpoint(parser, **weights_default) -> None:
+    """``--checkpoint PATH`` or ``--weights NAME`` (:func:`_add_weights_name`'s options)."""
     group = parser.add_mutually_exclusive_group()
     group.add_argument(
         "--checkpoint",
@@ -145,7 +149,7 @@ def _add_checkpoint(parser) -> None:
         help="training workdir, one of its checkpoints, or a .npz weights file"
         " from `usp-jax export --save-weights` (default: the shipped weights)",
     )
-    _add_weights_name(group)
+    _add_weights_name(group, **weights_default)
 
 
 def _add_nms_radius(parser, default: float, help: str) -> None:

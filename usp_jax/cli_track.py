@@ -10,6 +10,10 @@ a failure on the way leaves none of them. Ctrl-C ends the run as the end of the 
 recent keyframe, between which a camera turns a few degrees at most, within what the upright
 network matches; turning every frame back would add two detections per frame for no gain. A
 camera that rolls fast is better served by ``--weights rotation``.
+
+The network's defaults are the video ones (``tracking.default_detector``): ``--weights
+distilled``, detecting on a copy of each frame at most ``--network-side 480`` px long, because
+the package default, ``paper`` at full size, takes ~6x SIFT's time per frame.
 """
 
 from __future__ import annotations
@@ -25,6 +29,7 @@ import numpy as np
 
 from usp_jax.inference import tracking, video
 from usp_jax.inference.detector import MAX_SIDE
+from usp_jax.inference.tracking import VIDEO_SIDE, VIDEO_WEIGHTS
 
 #: ``--method`` names: the network, then the peers that run through the same tracker.
 METHODS = ("usp", "orb", "akaze", "sift", "xfeat")
@@ -37,7 +42,9 @@ def add_parser(subparsers) -> None:
 
     p = subparsers.add_parser("track", help="keypoint tracks through a video, folder or camera")
     p.add_argument("source", help="a video file, a folder of frames (name order) or a camera index")
-    options._add_checkpoint(p)
+    options._add_checkpoint(
+        p, default=VIDEO_WEIGHTS, why="the fast network taught by paper: real time on a CPU"
+    )
     p.add_argument(
         "--method",
         choices=METHODS,
@@ -52,6 +59,13 @@ def add_parser(subparsers) -> None:
     options._add_max_side(
         p,
         f"shrink frames longer than this first, every method alike (default {MAX_SIDE}; 0: never)",
+    )
+    p.add_argument(
+        "--network-side",
+        type=options._non_negative,
+        metavar="PX",
+        help=f"the network detects on a copy of each frame at most this long, its points mapped"
+        f" back to the frame's pixels (default {VIDEO_SIDE}; 0: the frame itself)",
     )
     p.add_argument(
         "--every", type=options._positive, default=1, metavar="N", help="track every N-th frame"
@@ -87,13 +101,21 @@ def _method(args, load_detector):
     if args.method != "usp":
         used = [f"--{n}" for n in ("weights", "checkpoint") if getattr(args, n, None)]
         used += ["--any-scale"] if getattr(args, "any_scale", False) else []
+        used += ["--network-side"] if getattr(args, "network_side", None) is not None else []
         if used:
             raise ValueError(f"{' and '.join(used)} only apply to --method usp")
         # XFeat without its packages raises a ValueError saying so.
         from usp_jax.evaluation.baselines import baseline_method
 
         return baseline_method(args.method, args.top)
-    options = {"top_n": args.top, "nms_radius": args.nms}
+    side = getattr(args, "network_side", None)
+    options = {
+        "top_n": args.top,
+        "nms_radius": args.nms,
+        "max_side": VIDEO_SIDE if side is None else side,
+    }
+    if not (getattr(args, "weights", None) or getattr(args, "checkpoint", None)):
+        args.weights = VIDEO_WEIGHTS
     if getattr(args, "any_scale", False):
         options["any_scale"] = True
     return load_detector(args, **options)

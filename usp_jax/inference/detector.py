@@ -174,6 +174,29 @@ def _pad(images: np.ndarray) -> np.ndarray:
 MAX_SIDE = 1280
 
 
+def shrink(image: np.ndarray, max_side: int) -> tuple[np.ndarray, np.ndarray]:
+    """``image`` shrunk to ``max_side`` on its longer side if it is longer (``INTER_AREA``),
+    and the float32 [2] (x, y) factors that take the copy's pixels back to the original's
+    (:func:`grow`). Others, and any image when ``max_side`` is 0, come back as they are, with
+    factors 1. A 12-megapixel photo at native size takes gigabytes of activations and seconds
+    on a CPU, and the network was trained on 240x320 views anyway."""
+    height, width = image.shape[:2]
+    if not 0 < max_side < max(height, width):
+        return image, np.ones(2, np.float32)
+    scale = max(height, width) / max_side
+    size = (max(round(width / scale), CELL), max(round(height / scale), CELL))
+    small = cv2.resize(image, size, interpolation=cv2.INTER_AREA)
+    return small, np.array([width / size[0], height / size[1]], np.float32)
+
+
+def grow(features: Features, factors: np.ndarray) -> Features:
+    """``features`` of a :func:`shrink`-ed copy in the original's pixels:
+    ``x = (x' + 0.5) * factors - 0.5`` (``cv2.resize`` scales about pixel corners), sizes by
+    the mean factor."""
+    scales = None if features.scales is None else features.scales * np.mean(factors)
+    return features._replace(keypoints=(features.keypoints + 0.5) * factors - 0.5, scales=scales)
+
+
 class Detector:
     """UnsuperPoint as a keypoint detector/descriptor for uint8 images of any size >= 8x8.
 
@@ -357,19 +380,8 @@ class Detector:
         return 0 < self.max_side < max(size)
 
     def shrink(self, image: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """``image`` shrunk to ``max_side`` on its longer side if it is longer (``INTER_AREA``),
-        and the float32 [2] (x, y) factors that take the copy's pixels back to the original's:
-        ``x = (x' + 0.5) * factors - 0.5`` (``cv2.resize`` scales about pixel corners). Others
-        come back as they are, with factors 1. A 12-megapixel photo at native size takes
-        gigabytes of activations and seconds on a CPU, and the network was trained on 240x320
-        views anyway."""
-        height, width = image.shape[:2]
-        if not self._shrinks((height, width)):
-            return image, np.ones(2, np.float32)
-        scale = max(height, width) / self.max_side
-        size = (max(round(width / scale), CELL), max(round(height / scale), CELL))
-        small = cv2.resize(image, size, interpolation=cv2.INTER_AREA)
-        return small, np.array([width / size[0], height / size[1]], np.float32)
+        """:func:`shrink` to this detector's ``max_side``."""
+        return shrink(image, self.max_side)
 
     def detect_as_is(self, image: np.ndarray, top_n: int | None = None) -> Features:
         """:meth:`detect` at the image's own size, whatever ``max_side`` says (for an image the
@@ -379,11 +391,7 @@ class Detector:
     def _detect_shrunk(self, image: np.ndarray, top_n: int | None) -> Features:
         """One image, :meth:`shrink`-ed, keypoints mapped back."""
         small, factors = self.shrink(image)
-        features = self._run(small[None], top_n)[0]
-        scales = None if features.scales is None else features.scales * np.mean(factors)
-        return features._replace(
-            keypoints=(features.keypoints + 0.5) * factors - 0.5, scales=scales
-        )
+        return grow(self._run(small[None], top_n)[0], factors)
 
     def _run(self, stack: np.ndarray, top_n: int | None) -> list[Features]:
         """A same-size uint8 [B, H, W, 3] stack of any H, W >= 8."""

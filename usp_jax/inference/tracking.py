@@ -41,6 +41,12 @@ from usp_jax.inference.matching import (
 #: and the radius that spreads points for a better-conditioned estimate (RESULTS.md).
 TOP_N = 1000
 NMS_RADIUS = 4.0
+#: The video default: the distilled fast network on a copy of each frame at most 480 px long
+#: (points in the frame's pixels). On real footage (box.mp4, 640x480) it keeps the default
+#: ``paper`` weights' inliers at every frame gap at 0.15x their time, below SIFT's (RESULTS.md,
+#: "Video tracking"); ``paper`` at full size takes ~6x SIFT's time, too slow for a live camera.
+VIDEO_WEIGHTS = "distilled"
+VIDEO_SIDE = 480
 #: RANSAC confidence of the fundamental matrix (OpenCV's default, 0.99, stops too early for
 #: hundreds of matches with many outliers).
 CONFIDENCE = 0.999
@@ -150,8 +156,11 @@ def assign_track_ids(
 
 
 def default_detector() -> Detector:
-    """The shipped default weights, ``TOP_N`` points, NMS radius ``NMS_RADIUS``."""
-    return Detector.pretrained(top_n=TOP_N, nms_radius=NMS_RADIUS)
+    """The video default: the ``VIDEO_WEIGHTS`` on copies at most ``VIDEO_SIDE`` px long,
+    ``TOP_N`` points, NMS radius ``NMS_RADIUS``."""
+    return Detector.pretrained(
+        VIDEO_WEIGHTS, top_n=TOP_N, nms_radius=NMS_RADIUS, max_side=VIDEO_SIDE
+    )
 
 
 def track(
