@@ -2,6 +2,7 @@ import dataclasses
 import functools
 
 import cv2
+import flax
 import jax
 import numpy as np
 import optax
@@ -339,6 +340,23 @@ def test_from_checkpoint_restores_the_trained_variables(variables, detector, ima
     restored = Detector.from_checkpoint(tmp_path)
     assert restored.model_config == SMALL_MODEL
     assert_same_features(restored.detect(image), detector.detect(image))
+
+
+def test_a_checkpoint_holding_nan_is_refused_naming_step_and_array(variables, tmp_path):
+    params = flax.traverse_util.flatten_dict(variables["params"], sep="/")
+    key = sorted(params)[0]
+    params[key] = np.asarray(params[key]).copy()
+    params[key].flat[0] = np.nan
+    state = {
+        "params": flax.traverse_util.unflatten_dict(params, sep="/"),
+        "batch_stats": variables["batch_stats"],
+        "step": np.int32(3),
+    }
+    mngr = checkpoint.manager(tmp_path / "checkpoints")
+    checkpoint.save(mngr, 3, state, Config(model=SMALL_MODEL))
+    mngr.wait_until_finished()
+    with pytest.raises(ValueError, match=f"checkpoint step 3 .*params/{key} holds NaN"):
+        Detector.from_checkpoint(tmp_path)
 
 
 @pytest.mark.parametrize("network, upsample", [("paper", 1), ("paper", 2), ("fast", 1)])

@@ -220,8 +220,18 @@ def _read_step(directory: pathlib.Path, step: int) -> tuple[dict, dict]:
 
 def load_checkpoint(path: str | pathlib.Path) -> tuple[ModelConfig, dict]:
     """:func:`load_weights` for a training checkpoint: ``(ModelConfig, {"params",
-    "batch_stats"})`` of the run in ``path`` (a workdir, its ``checkpoints/`` or one step)."""
+    "batch_stats"})`` of the run in ``path`` (a workdir, its ``checkpoints/`` or one step).
+    Raises ValueError naming the step and the array for a NaN or infinite value, as for a
+    weights file: a detector of such weights finds nothing, silently."""
     config, variables = read_checkpoint(path)
+    flat = flax.traverse_util.flatten_dict(variables, sep=_SEPARATOR)
+    for key, array in flat.items():
+        if not np.all(np.isfinite(np.asarray(array))):
+            directory, step = resolve_checkpoint(path)
+            raise ValueError(
+                f"checkpoint step {step} ({directory / str(step)}): array {key} holds NaN or"
+                " infinite values"
+            )
     return settings.from_dict(config["model"], ModelConfig), variables
 
 
