@@ -36,6 +36,7 @@ import numpy as np
 from usp_jax.evaluation.baselines import baseline_method
 from usp_jax.inference import tracking
 from usp_jax.inference.detector import Detector, grow, shrink
+from usp_jax.inference.weights import pretrained_path
 
 GAPS = (1, 5, 10)
 # Between what real footage shows: Megamind.avi (opencv-doc) measures 0.26 to 0.51 at its four
@@ -251,6 +252,8 @@ def main() -> None:
         parser.error(f"--length must be above the largest frame gap, {max(GAPS)}")
     try:  # before minutes of reading and compiling
         networks = [network_spec(spec) for spec in args.networks]
+        for name, *_ in networks:
+            pretrained_path(name)  # an unknown name: one line listing the shipped ones
         for spec in args.baselines:
             sided(spec)
     except ValueError as error:

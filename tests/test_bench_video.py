@@ -48,3 +48,21 @@ def test_a_shrunk_peer_detects_on_the_resized_frame_in_the_frames_pixels(bench_v
     np.testing.assert_allclose(found.keypoints, (expected.keypoints + 0.5) * 2 - 0.5, atol=1e-4)
     np.testing.assert_array_equal(found.descriptors, expected.descriptors)
     assert bench_video.sided("SIFT:200") == ("SIFT", 200)
+
+
+@pytest.mark.parametrize(
+    "options, message",
+    [
+        (["--networks", "papr"], "unknown weights 'papr'"),
+        (["--baselines", "SIFT:big"], "whole number"),
+    ],
+)
+def test_a_bad_method_is_one_line_before_the_video_is_read(
+    bench_video, monkeypatch, capsys, tmp_path, options, message
+):
+    # The video does not exist: an error about it would mean the specs were read too late.
+    monkeypatch.setattr("sys.argv", ["bench_video.py", str(tmp_path / "none.mp4"), *options])
+    with pytest.raises(SystemExit) as exit_info:
+        bench_video.main()
+    error = capsys.readouterr().err.strip().splitlines()
+    assert exit_info.value.code == 2 and message in error[-1], error
