@@ -232,9 +232,9 @@ def main() -> None:
     parser.add_argument(
         "--networks",
         nargs="+",
-        default=["distilled:480", "paper"],
-        help="shipped weights by name (default: %(default)s, `usp-jax track`'s default and the"
-        " package's); NAME:SIDE detects on frames shrunk to SIDE px on their"
+        default=["distilled:480-refine", "paper-refine"],
+        help="shipped weights by name (default: %(default)s, what `usp-jax track` runs by default"
+        " and with --weights paper --network-side 0); NAME:SIDE detects on frames shrunk to SIDE px on their"
         " longer side (keypoints in the frame's pixels, matched as the others); a +refine or"
         " -refine suffix turns the sub-pixel refinement on or off (default: the weights' own)",
     )

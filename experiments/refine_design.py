@@ -3,6 +3,8 @@ design pairs, report on the held-out ones):
 
     python3 experiments/refine_design.py --pairs data/design-pairs --every 4 --learned usp_jax/weights/refine.npz
 
+(``--weights NAME``: another shipped network's points, raw and refined.)
+
 - ``raw``: the shipped detector's cells (``Detector(refine=False)``);
 - ``learned:FILE``: the offset network of ``inference.refine`` with those weights;
 - ``harris``: each point moved to the strongest Harris response within half a cell (the same
@@ -77,13 +79,14 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--pairs", required=True, help="HPatches-layout folder")
     parser.add_argument("--every", type=int, default=1, help="keep every N-th scene")
+    parser.add_argument("--weights", help="the detector's shipped weights (default: the package's)")
     parser.add_argument("--learned", nargs="*", default=[], help="OffsetNet .npz files")
     parser.add_argument("--harris", action="store_true", help="add the Harris candidate")
     parser.add_argument("--ransac-orders", type=int, default=1)
     parser.add_argument("--json", help="write the evaluation here")
     args = parser.parse_args()
 
-    raw = Detector.pretrained(refine=False)
+    raw = Detector.pretrained(args.weights, refine=False)
     methods = [protocol.Method("raw", raw.detect)]
     if args.harris:
 
@@ -95,7 +98,8 @@ def main() -> None:
     for path in args.learned:
         methods.append(
             protocol.Method(
-                f"learned:{pathlib.Path(path).stem}", Detector.pretrained(refine=path).detect
+                f"learned:{pathlib.Path(path).stem}",
+                Detector.pretrained(args.weights, refine=path).detect,
             )
         )
     results = protocol.evaluate(

@@ -109,9 +109,12 @@ def test_every_detecting_command_takes_no_refine(command):
     assert parse_args([*command, "--no-refine"]).no_refine is True
 
 
-def test_the_refinement_is_on_by_default_for_the_paper_network_only():
-    # It was trained on the paper network's points; the fast and rotation networks keep theirs.
+def test_the_refinement_is_on_by_default_for_the_paper_and_distilled_networks_only():
+    # Trained on the paper network's points, it also improves those of the network distilled
+    # from it; the fast and rotation networks keep theirs.
     assert Detector.pretrained().refiner is not None
+    assert Detector.pretrained("distilled").refiner is not None
     assert Detector.pretrained("fast").refiner is None
+    assert Detector.pretrained("rotation").refiner is None
     assert Detector.pretrained("paper", refine=False).refiner is None
     assert Detector.pretrained("rotation", refine=True).refiner is not None

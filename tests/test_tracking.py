@@ -188,8 +188,8 @@ def test_cli_tracks_a_tiny_video_into_json_tracks_and_an_annotated_video(
 @pytest.mark.parametrize(
     "options, expected",
     [
-        ([], ("distilled", tracking.VIDEO_SIDE)),
-        (["--weights", "paper", "--network-side", "0"], ("paper", 0)),
+        ([], ("distilled", tracking.VIDEO_SIDE, False)),
+        (["--weights", "paper", "--network-side", "0"], ("paper", 0, False)),
     ],
 )
 def test_cli_network_defaults_to_the_distilled_weights_at_480_px(
@@ -201,7 +201,7 @@ def test_cli_network_defaults_to_the_distilled_weights_at_480_px(
     pretrained = Detector.pretrained.__func__
 
     def recording(cls, name=None, **kwargs):
-        loaded.append((name, kwargs["max_side"]))
+        loaded.append((name, kwargs["max_side"], kwargs["refine"]))
         return pretrained(cls, name, **kwargs)
 
     monkeypatch.setattr(Detector, "pretrained", classmethod(recording))
@@ -211,6 +211,7 @@ def test_cli_network_defaults_to_the_distilled_weights_at_480_px(
     monkeypatch.undo()
     default = tracking.default_detector()
     assert (default.max_side, default.top_n) == (tracking.VIDEO_SIDE, tracking.TOP_N)
+    assert default.refiner is None
     distilled = Detector.pretrained("distilled").variables
     assert all(
         np.array_equal(a, b)

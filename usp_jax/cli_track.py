@@ -13,7 +13,8 @@ camera that rolls fast is better served by ``--weights rotation``.
 
 The network's defaults are the video ones (``tracking.default_detector``): ``--weights
 distilled``, detecting on a copy of each frame at most ``--network-side 480`` px long, because
-the package default, ``paper`` at full size, takes ~6x SIFT's time per frame.
+the package default, ``paper`` at full size, takes ~6x SIFT's time per frame. The sub-pixel
+refinement stays off, whatever the weights: on footage it adds time and no inliers.
 """
 
 from __future__ import annotations
@@ -113,6 +114,8 @@ def _method(args, load_detector):
         "top_n": args.top,
         "nms_radius": args.nms,
         "max_side": VIDEO_SIDE if side is None else side,
+        # As the video default (tracking.default_detector): on footage it adds time, no inliers.
+        "refine": False,
     }
     if not (getattr(args, "weights", None) or getattr(args, "checkpoint", None)):
         args.weights = VIDEO_WEIGHTS

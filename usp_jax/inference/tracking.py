@@ -45,6 +45,7 @@ NMS_RADIUS = 4.0
 #: (points in the frame's pixels). On real footage (box.mp4, 640x480) it keeps the default
 #: ``paper`` weights' inliers at every frame gap at 0.15x their time, below SIFT's (RESULTS.md,
 #: "Video tracking"); ``paper`` at full size takes ~6x SIFT's time, too slow for a live camera.
+#: Without the sub-pixel refinement: on video it adds time and no inliers (RESULTS.md).
 VIDEO_WEIGHTS = "distilled"
 VIDEO_SIDE = 480
 #: RANSAC confidence of the fundamental matrix (OpenCV's default, 0.99, stops too early for
@@ -159,7 +160,7 @@ def default_detector() -> Detector:
     """The video default: the ``VIDEO_WEIGHTS`` on copies at most ``VIDEO_SIDE`` px long,
     ``TOP_N`` points, NMS radius ``NMS_RADIUS``."""
     return Detector.pretrained(
-        VIDEO_WEIGHTS, top_n=TOP_N, nms_radius=NMS_RADIUS, max_side=VIDEO_SIDE
+        VIDEO_WEIGHTS, top_n=TOP_N, nms_radius=NMS_RADIUS, max_side=VIDEO_SIDE, refine=False
     )
 
 
