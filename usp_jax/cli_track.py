@@ -19,6 +19,7 @@ refinement stays off, whatever the weights: on footage it adds time and no inlie
 
 from __future__ import annotations
 
+import argparse
 import contextlib
 import itertools
 import json
@@ -118,7 +119,7 @@ def _method(args, load_detector):
         "refine": False,
     }
     if not (getattr(args, "weights", None) or getattr(args, "checkpoint", None)):
-        args.weights = VIDEO_WEIGHTS
+        args = argparse.Namespace(**{**vars(args), "weights": VIDEO_WEIGHTS})
     if getattr(args, "any_scale", False):
         options["any_scale"] = True
     return load_detector(args, **options)
