@@ -317,10 +317,8 @@ def test_load_takes_a_weights_file_a_training_workdir_or_nothing_for_the_shipped
     assert_same_features(
         from_file.detect(image), Detector(stored, SMALL_MODEL).detect(image, top_n=5)
     )
-    # By name "paper" is refined (weights.REFINED); the file's small network by path is not.
     np.testing.assert_array_equal(
-        Detector.load(refine=False).detect(image, top_n=5).keypoints,
-        from_file.detect(image).keypoints,
+        Detector.load().detect(image, top_n=5).keypoints, from_file.detect(image).keypoints
     )
     with pytest.raises(FileNotFoundError, match="absent.npz"):
         Detector.load(tmp_path / "absent.npz")

@@ -84,7 +84,7 @@ def _load_detector(args, **options):
 
     options.setdefault("upsample", getattr(args, "upsample", 1))
     options.setdefault("any_scale", getattr(args, "any_scale", False))
-    options.setdefault("refine", False if getattr(args, "no_refine", False) else None)
+    options.setdefault("refine", getattr(args, "refine", None))
     if getattr(args, "weights", None):
         return Detector.pretrained(args.weights, **options)
     return Detector.load(getattr(args, "checkpoint", None) or None, **options)
@@ -217,9 +217,7 @@ def cmd_benchmark(args) -> None:
     if args.weights or args.checkpoint:
         detector = _load_detector(args, any_scale=False)
     else:  # every shipped network, side by side
-        detector = benchmark.shipped_networks(
-            upsample=args.upsample, refine=False if args.no_refine else None
-        )
+        detector = benchmark.shipped_networks(upsample=args.upsample, refine=args.refine)
     if args.any_scale:  # beside the single-scale rows, in the same run
         detector = benchmark.with_any_scale(detector)
     result = benchmark.benchmark(

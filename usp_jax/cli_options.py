@@ -15,7 +15,7 @@ from usp_jax.cli_arguments import (  # noqa: F401 (cli_track builds on them too)
     _add_checkpoint,
     _add_max_side,
     _add_nms_radius,
-    _add_no_refine,
+    _add_refine,
     _add_upsample,
     _add_weights_name,
     _non_negative,
@@ -186,7 +186,7 @@ def _add_evaluate(subparsers) -> None:
     p.add_argument("--plots", help="folder for keypoint and match PNGs")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     _add_upsample(p)
-    _add_no_refine(p)
+    _add_refine(p)
     _add_any_scale(p)
     _add_any_rotation(p)
 
@@ -288,7 +288,7 @@ def _add_benchmark(subparsers) -> None:
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.add_argument("--json", help="write the settings and every timed row as JSON here")
     _add_upsample(p)
-    _add_no_refine(p)
+    _add_refine(p)
     _add_any_scale(p)
 
 
@@ -311,7 +311,7 @@ def _add_detect(subparsers) -> None:
     p.add_argument("--out", help="PNG with the keypoints drawn")
     p.add_argument("--json", help="keypoints, scores and descriptors as JSON")
     _add_upsample(p)
-    _add_no_refine(p)
+    _add_refine(p)
     _add_any_scale(p)
 
 
@@ -334,7 +334,7 @@ def _add_match(subparsers) -> None:
     p.add_argument("--out", help="PNG of the inlier matches and image 1's border warped by H")
     p.add_argument("--json", help="homography, matches, inlier mask and keypoints as JSON")
     _add_upsample(p)
-    _add_no_refine(p)
+    _add_refine(p)
     _add_any_scale(p)
     _add_any_rotation(p)
 
@@ -370,7 +370,7 @@ def _add_export(subparsers) -> None:
     )
     _add_nms_radius(p, 0.0, "artifact NMS radius in px (default 0)")
     _add_upsample(p)
-    _add_no_refine(p)
+    _add_refine(p)
     _add_any_scale(p)
 
 

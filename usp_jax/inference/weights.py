@@ -32,19 +32,14 @@ WEIGHTS_DIR = importlib.resources.files("usp_jax") / "weights"
 #: "rotation": the fast network trained on full-circle rotations by experiments/rotation.py,
 #: for imagery that turns in-plane (its matching score no longer falls with the angle); on
 #: upright pairs the upright weights are better.
-#: "distilled": the fast network distilled from "paper" by experiments/distill.py, 11,000 steps:
-#: the fast network's speed, above "fast" on HA@3 and MS (0.81 and 0.63) but below "paper".
+#: "distilled": the fast network distilled from "paper" by experiments/distill.py, 20,000 steps:
+#: the fast network's speed, above "fast" on HA@3 and MS (0.81 and 0.64) but below "paper".
 PRETRAINED = {
     "paper": "paper.npz",
     "fast": "fast.npz",
     "rotation": "rotation.npz",
     "distilled": "distilled.npz",
 }
-#: Shipped weights whose points the shipped sub-pixel refinement (``inference.refine``, learned
-#: on "paper"'s points) improves on the training-photo design pairs, so it is on by default for
-#: them: "distilled" learned "paper"'s positions (LE 0.81 -> 0.63 px, HA@3 0.76 -> 0.83; RESULTS).
-#: On "rotation"'s points it breaks turned pairs; "fast" was not tried.
-REFINED = ("paper", "distilled")
 #: What ``Detector.pretrained()`` loads: the best of the named weights on the held-out pairs.
 DEFAULT_PRETRAINED = "paper"
 
