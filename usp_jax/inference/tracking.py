@@ -43,7 +43,7 @@ TOP_N = 1000
 NMS_RADIUS = 4.0
 #: The video default: the distilled fast network on a copy of each frame at most 480 px long
 #: (points in the frame's pixels). On real footage (box.mp4, 640x480) it keeps the default
-#: ``paper`` weights' inliers at every frame gap at 0.15x their time, below SIFT's (RESULTS.md,
+#: ``paper`` weights' inliers at every frame gap at about 0.2x their time, below SIFT's (RESULTS.md,
 #: "Video tracking"); ``paper`` at full size takes ~6x SIFT's time, too slow for a live camera.
 #: Without the sub-pixel refinement: on video it adds time and no inliers (RESULTS.md).
 VIDEO_WEIGHTS = "distilled"
