@@ -97,6 +97,40 @@ def stream(method, frames):
     return lambda: [method(frame) for frame in frames]
 
 
+def report(results: dict, sizes: list[str], batches: list[int], ceiling: float) -> None:
+    """Prints each size and batch's rows (median time, images/s, the networks' share of the
+    matmul ceiling and speed against the paper network, the refinement's cost) and adds each
+    row's ``images_per_s`` to ``results``."""
+    for size in sizes:
+        height, width = (int(v) for v in size.lower().split("x"))
+        for batch in batches:
+            print(f"{size}, batch {batch}, top {benchmark.protocol_top_n(height, width)} points:")
+            rows = [
+                r
+                for r in results["rows"]
+                if (r["height"], r["width"], r["batch"]) == (height, width, batch)
+            ]
+            paper_rate = None
+            for row in rows:
+                seconds = statistics.median(row["seconds"])
+                rate = batch / seconds
+                row["images_per_s"] = rate
+                line = f"  {row['method']:20s} {common.summary(row['seconds'])} {rate:7.1f} img/s"
+                network = row["method"].removeprefix("UnsuperPoint ")
+                if network in NETWORKS:
+                    gflop = results["networks"][f"{network} {size}"]["gflop_per_image"]
+                    paper_rate = rate if network == "paper" else paper_rate
+                    line += f"  {rate * gflop / ceiling:4.0%} of the matmul ceiling"
+                    if network != "paper" and paper_rate:
+                        line += f", {rate / paper_rate:.1f}x the paper network"
+                print(line)
+            times = {r["method"]: statistics.median(r["seconds"]) for r in rows}
+            refined = times["UnsuperPoint paper"] / times[RAW_CELLS]
+            print(f"  refinement: {refined:.2f}x the time of the raw cells (--no-refine)")
+            refined = times[REFINED_STUDENT] / times["UnsuperPoint fast"]
+            print(f"  on the fast network: {refined:.2f}x (distilled --refine against fast)")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--size", nargs="+", default=["240x320", "480x640"], help="HxW sizes")
@@ -143,7 +177,8 @@ def main() -> None:
                         "seconds": seconds,
                     }
                 )
-        for name, (detector, weights) in networks.items():
+        counted = {**networks, "distilled --refine": (student, "shipped weights")}
+        for name, (detector, weights) in counted.items():
             results["networks"][f"{name} {size}"] = {
                 "gflop_per_image": detector_gflop(detector, frames[:1]),
                 "parameters": int(
@@ -160,34 +195,7 @@ def main() -> None:
             f"  {key}: {info['gflop_per_image']:.2f} GFLOP per image (XLA),"
             f" {info['parameters']:,} parameters, {info['weights']}"
         )
-    for size in args.size:
-        height, width = (int(v) for v in size.lower().split("x"))
-        for batch in args.batch:
-            print(f"{size}, batch {batch}, top {benchmark.protocol_top_n(height, width)} points:")
-            rows = [
-                r
-                for r in results["rows"]
-                if (r["height"], r["width"], r["batch"]) == (height, width, batch)
-            ]
-            paper_rate = None
-            for row in rows:
-                seconds = statistics.median(row["seconds"])
-                rate = batch / seconds
-                row["images_per_s"] = rate
-                line = f"  {row['method']:20s} {common.summary(row['seconds'])} {rate:7.1f} img/s"
-                network = row["method"].removeprefix("UnsuperPoint ")
-                if network in NETWORKS:
-                    gflop = results["networks"][f"{network} {size}"]["gflop_per_image"]
-                    paper_rate = rate if network == "paper" else paper_rate
-                    line += f"  {rate * gflop / ceiling:4.0%} of the matmul ceiling"
-                    if network != "paper" and paper_rate:
-                        line += f", {rate / paper_rate:.1f}x the paper network"
-                print(line)
-            times = {r["method"]: statistics.median(r["seconds"]) for r in rows}
-            refined = times["UnsuperPoint paper"] / times[RAW_CELLS]
-            print(f"  refinement: {refined:.2f}x the time of the raw cells (--no-refine)")
-            refined = times[REFINED_STUDENT] / times["UnsuperPoint fast"]
-            print(f"  on the fast network: {refined:.2f}x (distilled --refine against fast)")
+    report(results, args.size, args.batch, ceiling)
     results["matching_ms"] = matching_ms()
     print("mutual nearest-neighbour matching per image pair (median):")
     for key, ms in results["matching_ms"].items():

@@ -223,7 +223,9 @@ def plot(rows: dict, path: str, title: str) -> None:
     figure.savefig(path, dpi=90)
 
 
-def main() -> None:
+def parse_args() -> tuple[argparse.Namespace, list[tuple]]:
+    """The command line, and ``--networks`` read by :func:`network_spec`; a bad spec is one line
+    (exit 2) before minutes of reading and compiling."""
     parser = argparse.ArgumentParser(description=" ".join(__doc__.split("\n\n")[0].split()))
     parser.add_argument("video", help="the footage (box.mp4 of opencv-doc, module docstring)")
     parser.add_argument("--windows", type=int, default=3, help="windows of consecutive frames")
@@ -234,9 +236,10 @@ def main() -> None:
         nargs="+",
         default=["distilled:480-refine", "paper-refine"],
         help="shipped weights by name (default: %(default)s, what `usp-jax track` runs by default"
-        " and with --weights paper --network-side 0); NAME:SIDE detects on frames shrunk to SIDE px on their"
-        " longer side (keypoints in the frame's pixels, matched as the others); a +refine or"
-        " -refine suffix turns the sub-pixel refinement on or off (default: the weights' own)",
+        " and with --weights paper --network-side 0); NAME:SIDE detects on frames shrunk to"
+        " SIDE px on their longer side (keypoints in the frame's pixels, matched as the others);"
+        " a +refine or -refine suffix turns the sub-pixel refinement on or off (default: the"
+        " weights' own)",
     )
     parser.add_argument(
         "--baselines",
@@ -250,7 +253,7 @@ def main() -> None:
     args = parser.parse_args()
     if args.length <= max(GAPS):  # every gap needs a pair inside a window
         parser.error(f"--length must be above the largest frame gap, {max(GAPS)}")
-    try:  # before minutes of reading and compiling
+    try:
         networks = [network_spec(spec) for spec in args.networks]
         for name, *_ in networks:
             pretrained_path(name)  # an unknown name: one line listing the shipped ones
@@ -258,7 +261,11 @@ def main() -> None:
             sided(spec)
     except ValueError as error:
         parser.error(f"--networks/--baselines {error}")
+    return args, networks
 
+
+def main() -> None:
+    args, networks = parse_args()
     print(common.environment())
     frames = read_video(args.video)
     cuts = shot_cuts(frames)
