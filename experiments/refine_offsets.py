@@ -3,7 +3,9 @@ frozen shipped detector.
 
     python3 experiments/refine_offsets.py --photos data/corpus/train --out usp_jax/weights/refine.npz
 
-``--weights distilled`` trains one for the distilled network's points instead.
+trains the shipped network (16, 16, 16 channels; 999 s of CPU). ``--channels`` sets another width
+and depth (the first shipped one was ``16,16``); ``--weights distilled`` trains one for the
+distilled network's points instead.
 
 Pairs: a random 240x320 crop A of a training photo and B = H(A), H drawn from the training
 homographies (paper section 3, ``core.geometry.sample_homography``), B's brightness, contrast
@@ -17,6 +19,7 @@ Prints the held-back pairs' mean distance before and after training, and the CPU
 from __future__ import annotations
 
 import argparse
+import functools
 import pathlib
 import time
 
@@ -50,26 +53,25 @@ def photometric(rng: np.random.Generator, image: np.ndarray) -> np.ndarray:
     return np.clip(x * 255 + 0.5, 0, 255).astype(np.uint8)
 
 
-def correspondences(detector, a, b, homography, radius):
+def correspondences(detector, a, b, homography, radius, margin):
     """Point pairs (p_A [N, 2], p_B [N, 2]) of two detections under ``homography`` (A -> B)."""
     found_a, found_b = detector.detect_batch(np.stack([a, b]))
     projected = np.asarray(warp_points(jnp.asarray(homography), jnp.asarray(found_a.keypoints)))
     distance = np.linalg.norm(projected[:, None] - found_b.keypoints[None], axis=-1)
     nearest = np.argmin(distance, axis=1)
-    margin = refine.PATCH
     inside = np.all((projected > margin) & (projected < [WIDTH - margin, HEIGHT - margin]), axis=1)
     keep = inside & (distance[np.arange(len(nearest)), nearest] < radius)
     return found_a.keypoints[keep], found_b.keypoints[nearest[keep]]
 
 
-@jax.jit
-def _patches(image, keypoints):
-    return refine.sample_patches(refine.grey(image.astype(jnp.float32) / 255.0), keypoints)
+@functools.partial(jax.jit, static_argnames="side")
+def _patches(image, keypoints, side):
+    return refine.sample_patches(refine.grey(image.astype(jnp.float32) / 255.0), keypoints, side)
 
 
-def build(photos, pairs, radius, seed, weights=None):
-    """Patches [N, 2, P, P], points [N, 2, 2] and homographies [N, 3, 3] of every point pair
-    the ``weights`` (shipped name; None: the default) find."""
+def build(photos, pairs, radius, seed, weights=None, side=refine.PATCH):
+    """Patches [N, 2, side, side], points [N, 2, 2] and homographies [N, 3, 3] of every point
+    pair the ``weights`` (shipped name; None: the default) find."""
     rng = np.random.default_rng(seed)
     detector = Detector.pretrained(weights, top_n=500, refine=False)
     key = jax.random.PRNGKey(seed)
@@ -79,8 +81,8 @@ def build(photos, pairs, radius, seed, weights=None):
         homography = np.asarray(sample_homography(jax.random.fold_in(key, i), HEIGHT, WIDTH))
         b = cv2.warpPerspective(a, homography, (WIDTH, HEIGHT), flags=cv2.INTER_LINEAR)
         b = photometric(rng, b)
-        p_a, p_b = correspondences(detector, a, b, homography, radius)
-        patches.append(np.stack([_patches(a, p_a), _patches(b, p_b)], axis=1))
+        p_a, p_b = correspondences(detector, a, b, homography, radius, side)
+        patches.append(np.stack([_patches(a, p_a, side), _patches(b, p_b, side)], axis=1))
         points.append(np.stack([p_a, p_b], axis=1))
         homographies.append(np.broadcast_to(homography, (len(p_a), 3, 3)))
     return (np.concatenate(x).astype(np.float32) for x in (patches, points, homographies))
@@ -89,7 +91,8 @@ def build(photos, pairs, radius, seed, weights=None):
 def moves(params, patches):
     """The offsets [N, 2, 2] of both points of each pair."""
     flat = patches.reshape(-1, *patches.shape[2:])
-    logits = refine.OffsetNet().apply({"params": params}, refine.normalise(flat))
+    channels = refine.channels_of(params)
+    logits = refine.OffsetNet(channels).apply({"params": params}, refine.normalise(flat))
     return refine.soft_argmax(logits).reshape(-1, 2, 2)
 
 
@@ -123,17 +126,27 @@ def main() -> None:
         help="weight of the squared mean offset per batch: the distance barely changes when"
         " every point shifts alike, so without it the points may drift together",
     )
+    parser.add_argument(
+        "--channels",
+        default=",".join(map(str, refine.CHANNELS)),
+        help="hidden widths of the offset network, comma-separated (default: the shipped one's);"
+        " each adds a convolution and a pixel a side to the patch",
+    )
     parser.add_argument("--cache", help="keep the point pairs in this .npz and reuse them")
     args = parser.parse_args()
+    channels = tuple(int(width) for width in args.channels.split(","))
+    side = refine.patch_side(channels)
     start_wall, start_cpu = time.time(), time.process_time()
 
     photos = [read_image(p) for p in sorted(pathlib.Path(args.photos).iterdir())]
     if args.cache and pathlib.Path(args.cache).is_file():
         with np.load(args.cache) as data:
             patches, points, homographies = data["patches"], data["points"], data["homographies"]
+        if patches.shape[-1] != side:
+            parser.error(f"--cache {args.cache} holds {patches.shape[-1]} px patches, not {side}")
     else:
         patches, points, homographies = build(
-            photos, args.pairs, args.radius, args.seed, args.weights
+            photos, args.pairs, args.radius, args.seed, args.weights, side
         )
         if args.cache:
             np.savez(args.cache, patches=patches, points=points, homographies=homographies)
@@ -145,11 +158,10 @@ def main() -> None:
 
     train = tuple(jnp.asarray(x[~held]) for x in (patches, points, homographies))
     test = tuple(jnp.asarray(x[held]) for x in (patches, points, homographies))
-    params = refine.init_params(jax.random.PRNGKey(args.seed))
+    params = refine.init_params(jax.random.PRNGKey(args.seed), channels)
     # A zero last layer: uniform logits, so training starts from the raw points (offset 0).
-    params = jax.tree_util.tree_map_with_path(
-        lambda path, x: jnp.zeros_like(x) if "Conv_2" in jax.tree_util.keystr(path) else x, params
-    )
+    last = f"Conv_{len(channels)}"
+    params = {**params, last: jax.tree.map(jnp.zeros_like, params[last])}
     optimizer = optax.adam(optax.cosine_decay_schedule(args.lr, args.steps))
     state = optimizer.init(params)
 

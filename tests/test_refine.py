@@ -65,7 +65,7 @@ def test_the_detector_moves_points_at_most_half_a_cell_of_the_network(wild_param
 
 def test_the_shipped_refinement_follows_a_sub_pixel_shift_the_raw_start_misses():
     # The training asks only that both views agree, so the refined point is a repeatable spot
-    # of the blob (about 2 px up-right of a bright blob's centre), not its centre: the known
+    # of the blob (2-2.5 px up-right of a bright blob's centre), not its centre: the known
     # answer is how far it moves when the blob moves by a known sub-pixel shift. The starts,
     # like cells that do not see the shift, stay where they are: off by the whole shift.
     centre, shift = np.array([20.0, 17.0]), np.array([0.4, -0.3])
@@ -77,8 +77,44 @@ def test_the_shipped_refinement_follows_a_sub_pixel_shift_the_raw_start_misses()
         image = gaussian_blob(c, (40, 44), sigma=2.0)[..., 0].astype(np.float32) / 255
         found.append(starts + np.asarray(refine.offsets(params, image, starts)))
     assert np.linalg.norm(shift) == pytest.approx(0.5)  # the raw starts' error
-    assert np.abs(found[1] - found[0] - shift).max() < 0.25
-    assert np.abs(found[0] - found[0].mean(axis=0)).max() < 0.25  # every start, one spot
+    assert np.abs(found[1] - found[0] - shift).max() < 0.25  # shipped: 0.21 (first one: 0.14)
+    # Every start, one spot: within 0.30 px of it (the first, shallower network: 0.16; the
+    # deeper one places real photos' points 5% better, RESULTS).
+    assert np.abs(found[0] - found[0].mean(axis=0)).max() < 0.35
+
+
+@pytest.mark.parametrize(
+    ("shape", "border", "upsample"), [((40, 48), 4, 1), ((37, 45), 3, 1), ((37, 45), 2, 2)]
+)
+def test_refining_only_the_strongest_candidates_gives_the_points_of_refining_all(
+    wild_params, shape, border, upsample
+):
+    # Without NMS a top-N detector refines only the N strongest points plus the cells along
+    # the edges, where a move decides whether a point stays; the wild weights move points up to
+    # half a cell, so some cross the border line both ways. No cut (top_n None) refines all.
+    _, path = wild_params
+    variables = init_variables(jax.random.PRNGKey(0), SMALL_MODEL)
+    image = np.random.default_rng(4).integers(0, 256, (*shape, 3), dtype=np.uint8)
+    options = dict(border=border, upsample=upsample, refine=path)
+    every = Detector(variables, SMALL_MODEL, **options).detect(image)
+    raw = Detector(variables, SMALL_MODEL, border=border, upsample=upsample, refine=False)
+    assert set(every.scores) != set(raw.detect(image).scores)  # the moves changed who stays
+    for top_n in (1, 10, 25):
+        strongest = Detector(variables, SMALL_MODEL, top_n=top_n, **options).detect(image)
+        np.testing.assert_array_equal(strongest.scores, every.scores[:top_n])
+        np.testing.assert_allclose(strongest.keypoints, every.keypoints[:top_n], atol=1e-4)
+        np.testing.assert_array_equal(strongest.descriptors, every.descriptors[:top_n])
+
+
+def test_the_strongest_candidates_count_covers_the_top_n_and_the_edge_cells():
+    from usp_jax.inference.detector import _refined_candidates
+
+    # 240x320: 300 + a ring of one cell at the top and left and two at the bottom and right,
+    # where the image may end anywhere in the last cell.
+    assert _refined_candidates(30, 40, 300, 0.0, 0.0, 1) == 300 + 3 * 40 + 3 * 30 - 9
+    assert _refined_candidates(30, 40, 300, 4.0, 0.0, 1) == 1200  # NMS sees the moved points
+    assert _refined_candidates(30, 40, None, 0.0, 0.0, 1) == 1200
+    assert _refined_candidates(5, 6, 10, 0.0, 0.0, 1) == 30  # never more than the candidates
 
 
 def test_the_refining_detector_is_one_compiled_function():
@@ -112,10 +148,34 @@ def test_every_detecting_command_takes_refine_and_no_refine(command):
 
 def test_the_refinement_is_on_by_default_for_the_paper_network_only():
     # It was trained on the paper network's points; the others keep theirs unless asked (on the
-    # distilled network's it gains as much, at 2-3x that network's time).
+    # distilled network's it gains as much, at about 1.8x that network's time).
     assert Detector.pretrained().refiner is not None
     assert Detector.pretrained("distilled").refiner is None
     assert Detector.pretrained("distilled", refine=True).refiner is not None
     assert Detector.pretrained("fast").refiner is None
     assert Detector.pretrained("paper", refine=False).refiner is None
     assert Detector.pretrained("rotation", refine=True).refiner is not None
+
+
+def test_an_offset_network_of_another_depth_loads_from_its_weights_and_reads_a_wider_patch(
+    tmp_path,
+):
+    params = refine.init_params(jax.random.PRNGKey(5), (8, 8, 8, 8))
+    refine.save_params(tmp_path / "deep.npz", params)
+    loaded = refine.load_params(tmp_path / "deep.npz")
+    assert refine.channels_of(loaded) == (8, 8, 8, 8)
+    assert refine.patch_side(refine.channels_of(loaded)) == refine.PATCH + 2 == 19
+    image = np.random.default_rng(6).random((30, 40)).astype(np.float32)
+    moves = refine.offsets(loaded, image, np.array([[20.0, 15.0], [3.0, 4.0]], np.float32))
+    assert moves.shape == (2, 2) and np.all(np.abs(moves) <= refine.REACH + 1e-4)
+
+
+def test_a_file_that_is_not_an_offset_network_is_refused(tmp_path):
+    np.savez(tmp_path / "other.npz", weights=np.zeros(3, np.float32))
+    with pytest.raises(ValueError, match="does not hold the refinement network's weights"):
+        refine.load_params(tmp_path / "other.npz")
+    params = refine.init_params(jax.random.PRNGKey(5))
+    params["Conv_1"]["kernel"] = params["Conv_1"]["kernel"][:, :, :8]  # widths do not chain
+    refine.save_params(tmp_path / "broken.npz", params)
+    with pytest.raises(ValueError, match="does not hold"):
+        refine.load_params(tmp_path / "broken.npz")

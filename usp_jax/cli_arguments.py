@@ -88,7 +88,7 @@ def _add_any_scale(parser) -> None:
         "--any-scale",
         action="store_true",
         help="match across zoom: detect on an image pyramid too (steps of 1/sqrt(2) down to a"
-        " 64 px side, about 1.9x the compute); keypoints get sizes from their level",
+        " 64 px side, about 2x the time); keypoints get sizes from their level",
     )
 
 
@@ -102,7 +102,7 @@ def _add_refine(parser) -> None:
         default=None,
         help="move each point by the sub-pixel refinement (inference.refine) whatever the"
         " weights (default: only the paper network's points; on distilled's it gains as much"
-        " at 2-3x its time)",
+        " at about 1.8x its time)",
     )
     group.add_argument(
         "--no-refine",

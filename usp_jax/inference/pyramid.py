@@ -92,9 +92,10 @@ def detect_pyramid(
     the first counts[b] entries are points) and sizes [B, K] (``CELL / scale`` of each point's
     level).
 
-    ``detect_level(variables, padded [B, h8, w8, 3], sizes [B, 2], top_n=None, nms_radius=0,
+    ``detect_level(variables, padded [B, h8, w8, 3], sizes [B, 2], top_n=n, nms_radius=0,
     border=b)`` is the single-scale detection (``detector._detect_padded`` with its model bound):
-    every point of a level, sorted, its first counts[b] valid. ``border`` is in input pixels.
+    a level's strongest points, sorted, its first counts[b] valid; all of them (n None) when
+    NMS across levels needs them. ``border`` is in input pixels.
     """
     batch, height, width = images.shape[:3]
     parts = []
@@ -106,7 +107,8 @@ def detect_pyramid(
             variables,
             _pad_to_cells(resize_level(images, shape)),
             sizes,
-            top_n=None,
+            # Without NMS a level's points beyond its own top N cannot make the top N of all.
+            top_n=top_n if nms_radius == 0 else None,
             nms_radius=0.0,
             border=border / max(factors),
         )
@@ -129,12 +131,14 @@ def detect_pyramid(
             keypoints, scores, valid, nms_radius, None if top_n is None else k
         )
     ranked, order = jax.lax.top_k(jnp.where(keep, scores, -jnp.inf), k)
-
-    def gather(values):
-        return jnp.take_along_axis(values, order.reshape(order.shape + (1,) * (values.ndim - 2)), 1)
-
     counts = jnp.minimum(jnp.sum(keep, axis=-1), k)
-    return gather(keypoints), ranked, gather(descriptors), counts, gather(sizes)
+    keypoints, descriptors, sizes = (take_points(x, order) for x in (keypoints, descriptors, sizes))
+    return keypoints, ranked, descriptors, counts, sizes
+
+
+def take_points(values: jax.Array, order: jax.Array) -> jax.Array:
+    """The rows ``order`` [B, K] of per-point values [B, M, ...] -> [B, K, ...]."""
+    return jnp.take_along_axis(values, order.reshape(order.shape + (1,) * (values.ndim - 2)), 1)
 
 
 def pyramid_function(detect_level: Callable, nms_radius: float, border: float) -> Callable:

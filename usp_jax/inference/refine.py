@@ -6,11 +6,12 @@ from the image around it, in the spirit of Keypt2Subpx (Kim et al., ECCV 2024):
 
     p' = p + o(patch(I, p)),    o = sum_{u in U} softmax(f(patch))_u * u,    U = {-R..R}^2
 
-``patch(I, p)``: the ``PATCH`` x ``PATCH`` grey patch bilinearly sampled on the pixel grid
-centred on p (``PATCH = 2 R + 1 + 2 * 3``, the margin of three valid 3x3 convolutions), normalised
-to zero mean and unit spread so brightness and contrast changes do not move points; ``f``: three
-valid 3x3 convolutions to one logit per offset u in the (2R + 1)^2 window; the soft-argmax makes
-the offset a convex combination of window offsets, so ``|o_x|, |o_y| <= R`` by construction.
+``patch(I, p)``: the P x P grey patch bilinearly sampled on the pixel grid centred on p
+(``P = 2 R + 1 + 2 D``, the margin of D valid 3x3 convolutions: 17 for the shipped D = 4),
+normalised to zero mean and unit spread so brightness and contrast changes do not move points;
+``f``: D valid 3x3 convolutions (16 channels wide) to one logit per offset u in the (2R + 1)^2
+window; the soft-argmax makes the offset a convex combination of window offsets, so
+``|o_x|, |o_y| <= R`` by construction.
 ``R = CELL / 2``: a point moves at most half a cell per axis, in the network's pixels (half of
 that in the input's at ``upsample`` 2).
 
@@ -39,33 +40,50 @@ from usp_jax.core.model import CELL
 
 #: Largest move per axis, in the network's pixels: half a cell.
 REACH = CELL // 2
-#: Valid 3x3 convolutions before the logits; each trims one pixel per side.
-DEPTH = 3
-#: Side of the patch read around a point: the (2 REACH + 1)^2 offset window plus the margin.
-PATCH = 2 * REACH + 1 + 2 * DEPTH
-#: Channels of the hidden convolutions.
-CHANNELS = (16, 16)
+#: Channels of the shipped network's hidden 3x3 convolutions. Other widths and depths load from
+#: their weights (:func:`channels_of`); every convolution is valid, so each trims a pixel a side.
+CHANNELS = (16, 16, 16)
 #: The shipped offset network, trained on top of the shipped paper weights.
 WEIGHTS = importlib.resources.files("usp_jax") / "weights" / "refine.npz"
+
+
+def patch_side(channels: tuple[int, ...] = CHANNELS) -> int:
+    """Side of the patch read around a point: the (2 REACH + 1)^2 offset window plus one pixel a
+    side for each of the ``len(channels) + 1`` valid convolutions."""
+    return 2 * REACH + 1 + 2 * (len(channels) + 1)
+
+
+#: The shipped network's patch side (17).
+PATCH = patch_side()
 
 # ITU-R BT.601 luma, as cv2.COLOR_RGB2GRAY.
 _LUMA = (0.299, 0.587, 0.114)
 
 
 class OffsetNet(nn.Module):
-    """Normalised patches [N, PATCH, PATCH] -> offset logits [N, 2 REACH + 1, 2 REACH + 1]."""
+    """Normalised patches [N, P, P] -> offset logits [N, 2 REACH + 1, 2 REACH + 1], with
+    ``P = patch_side(channels)``."""
+
+    channels: tuple[int, ...] = CHANNELS
 
     @nn.compact
     def __call__(self, patches: jax.Array) -> jax.Array:
         x = patches[..., None]
-        for channels in CHANNELS:
-            x = nn.relu(nn.Conv(channels, (3, 3), padding="VALID")(x))
+        for width in self.channels:
+            x = nn.relu(nn.Conv(width, (3, 3), padding="VALID")(x))
         return nn.Conv(1, (3, 3), padding="VALID")(x)[..., 0]
 
 
-def init_params(key: jax.Array) -> dict:
-    """Fresh OffsetNet parameters."""
-    return OffsetNet().init(key, jnp.zeros((1, PATCH, PATCH)))["params"]
+def init_params(key: jax.Array, channels: tuple[int, ...] = CHANNELS) -> dict:
+    """Fresh OffsetNet parameters of hidden widths ``channels``."""
+    side = patch_side(channels)
+    return OffsetNet(channels).init(key, jnp.zeros((1, side, side)))["params"]
+
+
+def channels_of(params: dict) -> tuple[int, ...]:
+    """The hidden widths of OffsetNet parameters, read off their kernels [3, 3, in, out]."""
+    kernels = [params[f"Conv_{i}"]["kernel"] for i in range(len(params))]
+    return tuple(int(kernel.shape[-1]) for kernel in kernels[:-1])
 
 
 def grey(pixels: jax.Array) -> jax.Array:
@@ -73,15 +91,15 @@ def grey(pixels: jax.Array) -> jax.Array:
     return pixels @ jnp.asarray(_LUMA, pixels.dtype)
 
 
-def sample_patches(image: jax.Array, keypoints: jax.Array) -> jax.Array:
-    """Bilinear grey patches [K, PATCH, PATCH] of image [H, W] centred on keypoints [K, 2].
+def sample_patches(image: jax.Array, keypoints: jax.Array, side: int = PATCH) -> jax.Array:
+    """Bilinear grey patches [K, side, side] of image [H, W] centred on keypoints [K, 2].
 
     Pixel centres at integers (``core.model`` convention); outside the image the border value is
     repeated, so a point near the edge sees no artificial step.
     """
-    steps = jnp.arange(PATCH, dtype=jnp.float32) - (PATCH - 1) / 2
-    xs = keypoints[:, None, None, 0] + steps[None, None, :]  # [K, 1, PATCH]
-    ys = keypoints[:, None, None, 1] + steps[None, :, None]  # [K, PATCH, 1]
+    steps = jnp.arange(side, dtype=jnp.float32) - (side - 1) / 2
+    xs = keypoints[:, None, None, 0] + steps[None, None, :]  # [K, 1, side]
+    ys = keypoints[:, None, None, 1] + steps[None, :, None]  # [K, side, 1]
     xs, ys = jnp.broadcast_arrays(xs, ys)
     return jax.scipy.ndimage.map_coordinates(image, [ys, xs], order=1, mode="nearest")
 
@@ -111,8 +129,9 @@ def soft_argmax(logits: jax.Array) -> jax.Array:
 def offsets(params: dict, image: jax.Array, keypoints: jax.Array) -> jax.Array:
     """The learned moves [K, 2] of keypoints [K, 2] on grey image [H, W], both in the same pixels;
     ``|move| <= REACH`` per axis."""
-    patches = normalise(sample_patches(image, keypoints))
-    return soft_argmax(OffsetNet().apply({"params": params}, patches))
+    channels = channels_of(params)
+    patches = normalise(sample_patches(image, keypoints, patch_side(channels)))
+    return soft_argmax(OffsetNet(channels).apply({"params": params}, patches))
 
 
 def refine_keypoints(params: dict, pixels: jax.Array, keypoints: jax.Array) -> jax.Array:
@@ -135,7 +154,11 @@ def load_params(path: str | pathlib.Path | None = None) -> dict:
         with np.load(file) as data:
             flat = {key: jnp.asarray(data[key], jnp.float32) for key in data.files}
     params = flax.traverse_util.unflatten_dict(flat, sep="/")
-    expected = jax.tree.map(jnp.shape, init_params(jax.random.PRNGKey(0)))
-    if jax.tree.map(jnp.shape, params) != expected:
+    try:
+        expected = jax.tree.map(jnp.shape, init_params(jax.random.PRNGKey(0), channels_of(params)))
+        fits = jax.tree.map(jnp.shape, params) == expected
+    except (KeyError, TypeError, IndexError, ValueError):
+        fits = False
+    if not fits:
         raise ValueError(f"{path or WEIGHTS} does not hold the refinement network's weights")
     return params
