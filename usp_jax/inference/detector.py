@@ -129,8 +129,8 @@ def _detect_padded(
 
     With a ``refiner`` the border test and NMS judge the refined points. Without NMS only the
     strongest :func:`_refined_candidates` points that the move can bring inside are refined (a
-    score does not move), which gives the same points as refining all of them at a third of
-    the cost at 240x320 / 300.
+    score does not move), which gives the same points as refining all of them: 501 of 1,200 at
+    240x320 / 300, about half the refinement's time.
     """
     pixels = images.astype(jnp.float32) / 255.0
     if upsample > 1:
