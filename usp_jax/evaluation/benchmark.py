@@ -13,6 +13,7 @@ work escapes the clock.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import itertools
 import os
 import platform
@@ -151,7 +152,7 @@ def benchmark(
         else {f"{UNSUPERPOINT} {name}": d for name, d in detector.items()}
     )
     device = jax.devices()[0]
-    rows, skipped, xfeat_model = [], {}, None
+    skipped, xfeat_model = {}, None
     if include_xfeat:
         try:
             xfeat_model = load_xfeat()
@@ -164,30 +165,17 @@ def benchmark(
         unit="row",
         disable=not progress,
     )
+    rows = []
     for height, width in resolutions:
         n = protocol_top_n(height, width) if top_n is None else top_n
         resized = [
             cv2.resize(photo, (width, height), interpolation=cv2.INTER_AREA) for photo in photos
         ]
-        frames = np.stack([resized[i % len(resized)] for i in range(max(batch_sizes))])
-        for batch in batch_sizes:
-            stack = frames[:batch]
-            for label, network in detectors.items():
-                bar.set_postfix_str(f"{label}, {height}x{width}, batch {batch}")
-                first, median = _timed(
-                    lambda: network.detect_batch(stack, top_n=n), repeats, warmup
-                )
-                rows.append(_row(label, height, width, batch, n, first, median, device.platform))
-                bar.update()
         host = [opencv_method(name, n) for name in OPENCV_DETECTORS] if include_opencv else []
         host += [xfeat_method(n, model=xfeat_model)] if xfeat_model is not None else []
-        for method in host:
-            bar.set_postfix_str(f"{method.name}, {height}x{width}")
-            # One photo after another, as a video stream would feed them.
-            stream = itertools.cycle(resized)
-            first, median = _timed(lambda: method.detect(next(stream)), repeats, warmup)
-            rows.append(_row(method.name, height, width, 1, n, first, median, "cpu"))
-            bar.update()
+        timing = functools.partial(_timed, repeats=repeats, warmup=warmup)
+        rows += _network_rows(detectors, resized, batch_sizes, n, timing, device.platform, bar)
+        rows += _host_rows(host, resized, n, timing, bar)
     bar.close()
     return {
         "device": device.device_kind,
@@ -203,6 +191,36 @@ def benchmark(
         "rows": rows,
         "skipped": skipped,
     }
+
+
+def _network_rows(detectors, resized, batch_sizes, top_n, timing, platform_name, bar) -> list:
+    """One row per detector and batch size on the same-size photos ``resized``, each batch the
+    photos cycled, timed as one ``detect_batch`` call."""
+    height, width = resized[0].shape[:2]
+    frames = np.stack([resized[i % len(resized)] for i in range(max(batch_sizes))])
+    rows = []
+    for batch in batch_sizes:
+        stack = frames[:batch]
+        for label, network in detectors.items():
+            bar.set_postfix_str(f"{label}, {height}x{width}, batch {batch}")
+            first, median = timing(lambda: network.detect_batch(stack, top_n=top_n))
+            rows.append(_row(label, height, width, batch, top_n, first, median, platform_name))
+            bar.update()
+    return rows
+
+
+def _host_rows(methods, resized, top_n, timing, bar) -> list:
+    """One batch-1 row per host method (OpenCV, XFeat), one photo after another as a video
+    stream would feed them."""
+    height, width = resized[0].shape[:2]
+    rows = []
+    for method in methods:
+        bar.set_postfix_str(f"{method.name}, {height}x{width}")
+        stream = itertools.cycle(resized)
+        first, median = timing(lambda: method.detect(next(stream)))
+        rows.append(_row(method.name, height, width, 1, top_n, first, median, "cpu"))
+        bar.update()
+    return rows
 
 
 def format_benchmark(result: dict) -> str:
