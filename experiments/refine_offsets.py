@@ -29,7 +29,7 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
-from usp_jax.core.geometry import sample_homography, warp_points
+from usp_jax.core.geometry import HomographyConfig, sample_homography, warp_points
 from usp_jax.inference import Detector, refine
 from usp_jax.inference.images import read_image
 
@@ -69,7 +69,7 @@ def _patches(image, keypoints, side):
     return refine.sample_patches(refine.grey(image.astype(jnp.float32) / 255.0), keypoints, side)
 
 
-def build(photos, pairs, radius, seed, weights=None, side=refine.PATCH):
+def build(photos, pairs, radius, seed, weights=None, side=refine.PATCH, views=HomographyConfig()):
     """Patches [N, 2, side, side], points [N, 2, 2] and homographies [N, 3, 3] of every point
     pair the ``weights`` (shipped name; None: the default) find."""
     rng = np.random.default_rng(seed)
@@ -78,7 +78,7 @@ def build(photos, pairs, radius, seed, weights=None, side=refine.PATCH):
     patches, points, homographies = [], [], []
     for i in range(pairs):
         a = crop(rng, photos[rng.integers(len(photos))])
-        homography = np.asarray(sample_homography(jax.random.fold_in(key, i), HEIGHT, WIDTH))
+        homography = np.asarray(sample_homography(jax.random.fold_in(key, i), HEIGHT, WIDTH, views))
         b = cv2.warpPerspective(a, homography, (WIDTH, HEIGHT), flags=cv2.INTER_LINEAR)
         b = photometric(rng, b)
         p_a, p_b = correspondences(detector, a, b, homography, radius, side)
@@ -132,6 +132,13 @@ def main() -> None:
         help="hidden widths of the offset network, comma-separated (default: the shipped one's);"
         " each adds a convolution and a pixel a side to the patch",
     )
+    parser.add_argument(
+        "--perspective",
+        type=float,
+        default=HomographyConfig().perspective,
+        help="keystone range of the training homographies (core.geometry.HomographyConfig;"
+        " default: training's)",
+    )
     parser.add_argument("--cache", help="keep the point pairs in this .npz and reuse them")
     args = parser.parse_args()
     channels = tuple(int(width) for width in args.channels.split(","))
@@ -146,7 +153,13 @@ def main() -> None:
             parser.error(f"--cache {args.cache} holds {patches.shape[-1]} px patches, not {side}")
     else:
         patches, points, homographies = build(
-            photos, args.pairs, args.radius, args.seed, args.weights, side
+            photos,
+            args.pairs,
+            args.radius,
+            args.seed,
+            args.weights,
+            side,
+            HomographyConfig(perspective=args.perspective),
         )
         if args.cache:
             np.savez(args.cache, patches=patches, points=points, homographies=homographies)
