@@ -141,7 +141,10 @@ def main() -> None:
     )
     parser.add_argument("--cache", help="keep the point pairs in this .npz and reuse them")
     args = parser.parse_args()
-    channels = tuple(int(width) for width in args.channels.split(","))
+    try:
+        channels = tuple(int(width) for width in args.channels.split(","))
+    except ValueError:
+        parser.error(f"--channels takes comma-separated integers, got {args.channels!r}")
     side = refine.patch_side(channels)
     start_wall, start_cpu = time.time(), time.process_time()
 

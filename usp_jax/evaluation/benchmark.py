@@ -165,6 +165,7 @@ def benchmark(
         unit="row",
         disable=not progress,
     )
+    timing = functools.partial(_timed, repeats=repeats, warmup=warmup)
     rows = []
     for height, width in resolutions:
         n = protocol_top_n(height, width) if top_n is None else top_n
@@ -173,7 +174,6 @@ def benchmark(
         ]
         host = [opencv_method(name, n) for name in OPENCV_DETECTORS] if include_opencv else []
         host += [xfeat_method(n, model=xfeat_model)] if xfeat_model is not None else []
-        timing = functools.partial(_timed, repeats=repeats, warmup=warmup)
         rows += _network_rows(detectors, resized, batch_sizes, n, timing, device.platform, bar)
         rows += _host_rows(host, resized, n, timing, bar)
     bar.close()

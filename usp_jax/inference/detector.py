@@ -74,9 +74,9 @@ def _select_points(
     ranked, order = jax.lax.top_k(jnp.where(keep, scores, -jnp.inf), k)
     counts = jnp.minimum(jnp.sum(keep, axis=-1), k)
     return (
-        jnp.take_along_axis(keypoints, order[..., None], axis=1),
+        pyramid.take_points(keypoints, order),
         ranked,
-        jnp.take_along_axis(predictions.descriptors, order[..., None], axis=1),
+        pyramid.take_points(predictions.descriptors, order),
         counts,
     )
 
