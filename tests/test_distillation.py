@@ -130,6 +130,16 @@ def test_a_resumed_distillation_run_continues_bit_exactly(tmp_path):
         np.testing.assert_array_equal(a, b)
 
 
+def test_a_distillation_run_reads_its_teacher_once(tmp_path, monkeypatch):
+    """The check before the workdir is made loads the teacher; the step reuses it."""
+    config = fast_student(tmp_path)
+    reads = []
+    load_named = step_lib.load_named
+    monkeypatch.setattr(step_lib, "load_named", lambda *a: reads.append(a) or load_named(*a))
+    train.fit(config, tmp_path / "run", progress=False, num_steps=1)
+    assert len(reads) == 1
+
+
 def test_distillation_only_ignores_the_paper_losses(tmp_path):
     """``distill.alpha_self=0``: the loss is the distillation term alone."""
     config = fast_student(tmp_path, **{"distill.alpha_self": 0.0})

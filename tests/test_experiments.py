@@ -252,6 +252,22 @@ def test_the_lighting_stage_adds_gamma_and_wider_intensity_changes_and_changes_n
     )
 
 
+def test_the_zoom_fine_tune_widens_the_scale_range_of_the_shipped_weights_last_stage():
+    import dataclasses
+
+    stage10, zoom = recipe("paper_network.py:stage10"), recipe("zoom.py")
+    assert (zoom.homography.scaling, stage10.homography.scaling) == (0.4, 0.2)
+    # A patch scaled past the crop needs the context window to render B from.
+    assert zoom.data.context_window and not stage10.data.context_window
+    assert dataclasses.replace(zoom.homography, scaling=0.2) == stage10.homography
+    assert (zoom.model, zoom.loss, zoom.photometric) == (
+        stage10.model,
+        stage10.loss,
+        stage10.photometric,
+    )
+    assert zoom.seed not in {recipe(f"paper_network.py:{n}").seed for n in LATER_STAGES}
+
+
 def test_each_stage_has_its_own_seed_so_it_sees_other_crops_and_homographies():
 
     names = ("get_config", *LATER_STAGES)

@@ -45,9 +45,11 @@ def test_resize_level_is_an_antialiased_opencv_resize(photo):
     assert error < 2 and error < 0.5 * np.abs(crop[::2, ::2] - area).mean()
 
 
-def test_each_level_equals_detect_on_the_image_resized_to_it(variables, image):
-    features = Detector(variables, SMALL_MODEL, any_scale=True).detect(image)
-    single = Detector(variables, SMALL_MODEL)
+@pytest.mark.parametrize("refine", [False, True])
+def test_each_level_equals_detect_on_the_image_resized_to_it(variables, image, refine):
+    # Refined, each point's patch is read from its own level's image (pyramid._level_offsets).
+    features = Detector(variables, SMALL_MODEL, any_scale=True, refine=refine).detect(image)
+    single = Detector(variables, SMALL_MODEL, refine=refine)
     height, width = image.shape[:2]
     scales = pyramid.level_scales(height, width)
     assert len(scales) == 3
@@ -113,9 +115,9 @@ def test_one_compiled_pyramid_per_input_size(variables, image):
     detector = Detector(variables, SMALL_MODEL, any_scale=True)
     first = detector.detect(image)
     detector.detect(image[:-1])
-    assert detector._pyramid._cache_size() == 2  # two sizes, though both pad to one shape
+    assert detector._forward._cache_size() == 2  # two sizes, though both pad to one shape
     again = detector.detect(image.copy())
-    assert detector._pyramid._cache_size() == 2
+    assert detector._forward._cache_size() == 2
     np.testing.assert_allclose(first.keypoints, again.keypoints)
 
 

@@ -84,10 +84,18 @@ def test_the_shipped_refinement_follows_a_sub_pixel_shift_the_raw_start_misses()
 
 
 @pytest.mark.parametrize(
-    ("shape", "border", "upsample"), [((40, 48), 4, 1), ((37, 45), 3, 1), ((37, 45), 2, 2)]
+    ("shape", "border", "upsample", "any_scale"),
+    [
+        ((40, 48), 4, 1, False),
+        ((37, 45), 3, 1, False),
+        ((37, 45), 2, 2, False),
+        # Three levels, cut together: the strongest of all levels plus every level's edge cells.
+        ((131, 147), 3, 1, True),
+        ((131, 147), 2, 2, True),
+    ],
 )
 def test_refining_only_the_strongest_candidates_gives_the_points_of_refining_all(
-    wild_params, shape, border, upsample
+    wild_params, shape, border, upsample, any_scale
 ):
     # Without NMS a top-N detector refines only the N strongest points plus the cells along
     # the edges, where a move decides whether a point stays; the wild weights move points up to
@@ -95,9 +103,9 @@ def test_refining_only_the_strongest_candidates_gives_the_points_of_refining_all
     _, path = wild_params
     variables = init_variables(jax.random.PRNGKey(0), SMALL_MODEL)
     image = np.random.default_rng(4).integers(0, 256, (*shape, 3), dtype=np.uint8)
-    options = dict(border=border, upsample=upsample, refine=path)
+    options = dict(border=border, upsample=upsample, refine=path, any_scale=any_scale)
     every = Detector(variables, SMALL_MODEL, **options).detect(image)
-    raw = Detector(variables, SMALL_MODEL, border=border, upsample=upsample, refine=False)
+    raw = Detector(variables, SMALL_MODEL, **{**options, "refine": False})
     assert set(every.scores) != set(raw.detect(image).scores)  # the moves changed who stays
     for top_n in (1, 10, 25):
         strongest = Detector(variables, SMALL_MODEL, top_n=top_n, **options).detect(image)

@@ -20,7 +20,7 @@ import functools
 import importlib.resources
 import math
 import pathlib
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from typing import Any
 
 import cv2
@@ -29,8 +29,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from usp_jax.core.cpu_kernels import compiler_options
-from usp_jax.core.model import CELL, ModelConfig, UnsuperPoint
-from usp_jax.inference import pyramid, weights
+from usp_jax.core.model import CELL, ModelConfig, Predictions, UnsuperPoint
+from usp_jax.inference import points, pyramid, weights
 from usp_jax.inference import refine as refine_lib
 from usp_jax.inference.features import Features
 from usp_jax.inference.memory import check_fits, measured_bytes_per_pixel
@@ -60,7 +60,7 @@ def _select_points(
     score, and counts [B]: only the first counts[b] entries of image b are points.
     """
     keypoints, scores = predictions.keypoints, predictions.scores
-    keep = _inside(keypoints, sizes, border)
+    keep = points.inside(keypoints, sizes[:, None, ::-1], border)
     m = scores.shape[-1]
     k = m if top_n is None else min(top_n, m)
     if nms_radius > 0:
@@ -74,38 +74,42 @@ def _select_points(
     ranked, order = jax.lax.top_k(jnp.where(keep, scores, -jnp.inf), k)
     counts = jnp.minimum(jnp.sum(keep, axis=-1), k)
     return (
-        pyramid.take_points(keypoints, order),
+        points.take(keypoints, order),
         ranked,
-        pyramid.take_points(predictions.descriptors, order),
+        points.take(predictions.descriptors, order),
         counts,
     )
-
-
-def _inside(keypoints: jax.Array, sizes: jax.Array, border: float) -> jax.Array:
-    """keypoints [B, M, 2] at least ``border`` px inside images of sizes [B, 2] -> bool [B, M]
-    (a negative ``border`` reaches that far outside)."""
-    extent = sizes[:, None, ::-1].astype(jnp.float32)  # [B, 1, 2] (width, height)
-    return jnp.all((keypoints >= border - 0.5) & (keypoints < extent - 0.5 - border), axis=-1)
 
 
 def _refined_candidates(
     cells_h: int, cells_w: int, top_n: int | None, nms_radius: float, border: float, upsample: int
 ) -> int:
     """How many of the M candidates, strongest first, must be refined for the output to equal
-    refining all M: K = top_n plus every cell whose point a move of up to ``REACH`` network
-    pixels can carry across the border line (those are the only points whose keeping the move
-    decides); M where NMS (which sees the moved points) or no top-N cut needs them all.
-
-    Rows of cells near the top edge: ceil((border + reach) / cell); near the bottom edge, which
-    lies anywhere in the last cell of padding: ceil((8 + border + reach) / cell); columns alike.
-    """
+    refining all M: top_n plus the :func:`refine.edge_cells` (the only points whose keeping a
+    move decides); M where NMS (which sees the moved points) or no top-N cut needs them all."""
     m = cells_h * cells_w
     if top_n is None or nms_radius > 0:
         return m
-    cell, reach = CELL / upsample, refine_lib.REACH / upsample
-    near = math.ceil((border + reach) / cell) + math.ceil((CELL + border + reach) / cell)
-    rows, cols = min(near, cells_h), min(near, cells_w)
-    return min(m, top_n + rows * cells_w + cols * cells_h - rows * cols)
+    return min(m, top_n + refine_lib.edge_cells(cells_h, cells_w, border, upsample))
+
+
+def _network(
+    variables: dict, images: jax.Array, *, model: UnsuperPoint, upsample: int = 1
+) -> tuple[jax.Array, Predictions]:
+    """uint8 [B, H, W, 3] (H, W multiples of 8) -> (the network's input float32 [B, sH, sW, 3],
+    its Predictions in its own pixels).
+
+    ``upsample`` s > 1 runs the network on the images enlarged s times (bilinear, pixel centres
+    aligned): the cells shrink to 8 / s input pixels, and positions regressed to a roughly
+    constant precision in the network's pixels come back finer (LE 0.69 -> 0.45 px at s = 2 on
+    the held-out pairs; SIFT doubles its input for the same reason).
+    """
+    pixels = images.astype(jnp.float32) / 255.0
+    if upsample > 1:
+        batch, height, width, channels = pixels.shape
+        shape = (batch, height * upsample, width * upsample, channels)
+        pixels = jax.image.resize(pixels, shape, "linear")
+    return pixels, model.apply(variables, pixels, train=False)
 
 
 def _detect_padded(
@@ -113,53 +117,42 @@ def _detect_padded(
     images: jax.Array,
     sizes: jax.Array,
     *,
-    model: UnsuperPoint,
+    network: Callable,
     top_n: int | None,
     nms_radius: float,
     border: float,
     upsample: int = 1,
     refiner: dict | None = None,
 ) -> tuple[jax.Array, ...]:
-    """uint8 [B, H, W, 3] (H, W multiples of 8) + sizes [B, 2] -> :func:`_select_points` output.
-
-    ``upsample`` s > 1 runs the network on the images enlarged s times (bilinear, pixel centres
-    aligned) and maps its keypoints back: the cells shrink to 8 / s input pixels, and positions
-    regressed to a roughly constant precision in the network's pixels come back finer (LE 0.69
-    -> 0.45 px at s = 2 on the held-out pairs; SIFT doubles its input for the same reason).
+    """uint8 [B, H, W, 3] (H, W multiples of 8) + sizes [B, 2] -> :func:`_select_points` output;
+    ``network`` is :func:`_network` with its model and ``upsample`` bound.
 
     With a ``refiner`` the border test and NMS judge the refined points. Without NMS only the
     strongest :func:`_refined_candidates` points that the move can bring inside are refined (a
     score does not move), which gives the same points as refining all of them: 501 of 1,200 at
     240x320 / 300, about half the refinement's time.
     """
-    pixels = images.astype(jnp.float32) / 255.0
-    if upsample > 1:
-        batch, height, width, channels = pixels.shape
-        shape = (batch, height * upsample, width * upsample, channels)
-        pixels = jax.image.resize(pixels, shape, "linear")
-    predictions = model.apply(variables, pixels, train=False)
+    pixels, predictions = network(variables, images)
     cells_h, cells_w = pixels.shape[1] // CELL, pixels.shape[2] // CELL
     if refiner is not None:
         count = _refined_candidates(cells_h, cells_w, top_n, nms_radius, border, upsample)
         if count < cells_h * cells_w:
             # The points a move of up to REACH can bring inside, strongest first.
             reach = refine_lib.REACH / upsample
-            possible = _inside(_to_input(predictions.keypoints, upsample), sizes, border - reach)
+            possible = points.inside(
+                points.to_input(predictions.keypoints, upsample),
+                sizes[:, None, ::-1],
+                border - reach,
+            )
             _, order = jax.lax.top_k(jnp.where(possible, predictions.scores, -jnp.inf), count)
-            predictions = jax.tree.map(lambda x: pyramid.take_points(x, order), predictions)
+            predictions = jax.tree.map(lambda x: points.take(x, order), predictions)
         # In the network's pixels, where the offsets were learned (inference.refine).
         refined = refine_lib.refine_keypoints(refiner, pixels, predictions.keypoints)
         predictions = predictions._replace(keypoints=refined)
-    predictions = predictions._replace(keypoints=_to_input(predictions.keypoints, upsample))
+    predictions = predictions._replace(keypoints=points.to_input(predictions.keypoints, upsample))
     return _select_points(
         predictions, sizes, cells_h, cells_w, top_n, nms_radius, border, CELL / upsample
     )
-
-
-def _to_input(keypoints: jax.Array, upsample: int) -> jax.Array:
-    """Keypoints in the network's pixels -> the input's. Pixel centres sit at integers: input
-    pixel x spans [x - 0.5, x + 0.5], ``upsample`` network pixels."""
-    return keypoints if upsample == 1 else (keypoints + 0.5) / upsample - 0.5
 
 
 def unbatch(outputs) -> list[Features]:
@@ -311,22 +304,23 @@ class Detector:
         self.refiner = (
             None if refine is False else refine_lib.load_params(None if refine is True else refine)
         )
-        self._function = functools.partial(
-            _detect_padded,
-            model=UnsuperPoint(model_config),
+        self.any_scale = bool(any_scale)
+        options = dict(
+            network=functools.partial(
+                _network, model=UnsuperPoint(model_config), upsample=self.upsample
+            ),
             nms_radius=self.nms_radius,
             border=self.border,
             upsample=self.upsample,
             refiner=self.refiner,
         )
+        # (variables, uint8 images, [sizes,] top_n=...) -> fixed-size outputs; jax.export
+        # jits it itself. The pyramid takes the unpadded images: it pads each level.
+        self._function = functools.partial(
+            pyramid.detect_pyramid if self.any_scale else _detect_padded, **options
+        )
         self._forward = jax.jit(
             self._function, static_argnames="top_n", compiler_options=compiler_options()
-        )
-        self.any_scale = bool(any_scale)
-        self._pyramid = (
-            pyramid.compile_pyramid(self._function, self.nms_radius, self.border)
-            if self.any_scale
-            else None
         )
 
     def replace(self, **changes) -> Detector:
@@ -446,7 +440,9 @@ class Detector:
     def _bytes_per_pixel(self) -> float:
         """XLA's memory need of this detector per input pixel (``memory.check_fits``), once."""
         if not hasattr(self, "_measured"):
-            self._measured = measured_bytes_per_pixel(self._forward, self.variables, self.top_n)
+            self._measured = measured_bytes_per_pixel(
+                self._forward, self.variables, self.top_n, self.any_scale
+            )
         return self._measured
 
     def _call(self, padded: np.ndarray, sizes: np.ndarray, top_n: int | None) -> list[Features]:
@@ -454,9 +450,9 @@ class Detector:
         # Before compiling: an image too large for memory is one line naming max_side, not an
         # abort inside XLA.
         check_fits(self.model_config, padded.shape, self.upsample, self._bytes_per_pixel)
-        if self._pyramid is not None:
+        if self.any_scale:
             return pyramid.detect_by_size(
-                self._pyramid, self.variables, padded, sizes, top_n, unbatch
+                self._forward, self.variables, padded, sizes, top_n, unbatch
             )
         return unbatch(self._forward(self.variables, padded, sizes, top_n=top_n))
 

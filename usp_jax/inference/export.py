@@ -12,7 +12,6 @@ import numpy as np
 
 from usp_jax.inference.detector import Detector, check_size, padding, unbatch
 from usp_jax.inference.features import Features
-from usp_jax.inference.pyramid import pyramid_function
 
 
 def export(
@@ -35,8 +34,7 @@ def export(
 
     def detect(images):
         if detector.any_scale:  # the pyramid pads each level itself
-            function = pyramid_function(detector._function, detector.nms_radius, detector.border)
-            return function(detector.variables, images, top_n=detector.top_n)
+            return detector._function(detector.variables, images, top_n=detector.top_n)
         padded = jnp.pad(images, ((0, 0), (0, pad_h), (0, pad_w), (0, 0)), mode="edge")
         sizes = jnp.broadcast_to(jnp.array([height, width], jnp.int32), (images.shape[0], 2))
         return detector._function(detector.variables, padded, sizes, top_n=detector.top_n)

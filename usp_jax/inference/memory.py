@@ -85,14 +85,17 @@ REFERENCE_SIDE = 128
 _CLEAR_SHARE = 0.25
 
 
-def measured_bytes_per_pixel(forward, variables, top_n: int | None) -> float:
+def measured_bytes_per_pixel(
+    forward, variables, top_n: int | None, any_scale: bool = False
+) -> float:
     """XLA's own figure (``memory_analysis``: temporaries and outputs) for the jitted detector
     function ``forward`` on one ``REFERENCE_SIDE`` square image, per input pixel. One small
-    compile; covers every stage the function runs."""
+    compile; covers every stage the function runs. The pyramid's function (``any_scale``) takes
+    the images alone, the single-scale one their sizes too."""
     side = REFERENCE_SIDE
     images = jax.ShapeDtypeStruct((1, side, side, 3), "uint8")
-    sizes = jax.ShapeDtypeStruct((1, 2), "int32")
-    analysis = forward.lower(variables, images, sizes, top_n=top_n).compile().memory_analysis()
+    sizes = () if any_scale else (jax.ShapeDtypeStruct((1, 2), "int32"),)
+    analysis = forward.lower(variables, images, *sizes, top_n=top_n).compile().memory_analysis()
     return (analysis.temp_size_in_bytes + analysis.output_size_in_bytes) / side**2
 
 

@@ -28,6 +28,7 @@ compiled function.
 from __future__ import annotations
 
 import importlib.resources
+import math
 import pathlib
 
 import flax
@@ -129,9 +130,28 @@ def soft_argmax(logits: jax.Array) -> jax.Array:
 def offsets(params: dict, image: jax.Array, keypoints: jax.Array) -> jax.Array:
     """The learned moves [K, 2] of keypoints [K, 2] on grey image [H, W], both in the same pixels;
     ``|move| <= REACH`` per axis."""
+    return patch_offsets(params, sample_patches(image, keypoints, patch_side(channels_of(params))))
+
+
+def patch_offsets(params: dict, patches: jax.Array) -> jax.Array:
+    """The learned moves [K, 2] of the points at the centres of grey patches [K, P, P]
+    (:func:`sample_patches`, ``P = patch_side(channels_of(params))``)."""
     channels = channels_of(params)
-    patches = normalise(sample_patches(image, keypoints, patch_side(channels)))
-    return soft_argmax(OffsetNet(channels).apply({"params": params}, patches))
+    return soft_argmax(OffsetNet(channels).apply({"params": params}, normalise(patches)))
+
+
+def edge_cells(cells_h: int, cells_w: int, border: float, upsample: int = 1) -> int:
+    """How many cells of a cells_h x cells_w grid hold a point that a move of up to ``REACH``
+    network pixels can carry across the border line, ``border`` input px inside an image that
+    ends anywhere in the last cell (the padding): the only points whose keeping a move decides.
+
+    Rows of cells near the top edge: ceil((border + reach) / cell); near the bottom edge:
+    ceil((8 + border + reach) / cell); columns alike (cell and reach in input px).
+    """
+    cell, reach = CELL / upsample, REACH / upsample
+    near = math.ceil((border + reach) / cell) + math.ceil((CELL + border + reach) / cell)
+    rows, cols = min(near, cells_h), min(near, cells_w)
+    return rows * cells_w + cols * cells_h - rows * cols
 
 
 def refine_keypoints(params: dict, pixels: jax.Array, keypoints: jax.Array) -> jax.Array:

@@ -76,13 +76,14 @@ def make_optimizer(cfg: config_lib.OptimConfig) -> optax.GradientTransformation:
     return optax.chain(optax.clip_by_global_norm(cfg.clip_norm), adam) if cfg.clip_norm else adam
 
 
-def check_config(config: config_lib.Config) -> None:
+def check_config(config: config_lib.Config) -> Teacher | None:
     """Raises ValueError for a field of the wrong type or out of range (``config.validate``) and
     for settings that only make sense together (each section validates itself;
-    ``config.override`` applies one key at a time, so the sections cannot check each other)."""
+    ``config.override`` applies one key at a time, so the sections cannot check each other).
+    Returns the teacher it loaded to check it (None without one), for :func:`jit_train_step`."""
     config_lib.validate(config)
     try:
-        load_teacher(config)
+        teacher = load_teacher(config)
     except (OSError, ValueError) as error:
         raise ValueError(f"distill.teacher: {error}") from None
     if config.homography.rotation_range is not None and not config.data.context_window:
@@ -91,6 +92,7 @@ def check_config(config: config_lib.Config) -> None:
             "data.context_window=True: inside the crop a patch rotated that far would almost never "
             "fit (see experiments/rotation.py)"
         )
+    return teacher
 
 
 def create_state(config: config_lib.Config) -> TrainState:
@@ -334,15 +336,19 @@ def data_mesh() -> jax.sharding.Mesh:
     return jax.make_mesh((jax.device_count(),), ("data",), axis_types=(jax.sharding.AxisType.Auto,))
 
 
-def jit_train_step(config: config_lib.Config, mesh: jax.sharding.Mesh) -> Callable:
+def jit_train_step(
+    config: config_lib.Config, mesh: jax.sharding.Mesh, teacher: Teacher | None = None
+) -> Callable:
     """``train_step`` jitted data-parallel: batch sharded over ``mesh``, state replicated.
 
     Under plain jit with sharded inputs XLA inserts the gradient all-reduce itself, and the
     BatchNorm statistics are global across devices, so N devices compute what one would. The
-    teacher ``config.distill`` names, if any, is loaded here and compiled into the step.
+    teacher ``config.distill`` names, if any, is compiled into the step: ``teacher`` when the
+    caller has loaded it already (:func:`check_config` returns it), else loaded here.
     """
     replicated = NamedSharding(mesh, P())
-    teacher = load_teacher(config)
+    if teacher is None:
+        teacher = load_teacher(config)
     if teacher is not None:
         teacher = jax.device_put(teacher, replicated)
     return jax.jit(

@@ -144,7 +144,7 @@ def fit(
 
     workdir = pathlib.Path(workdir).expanduser().absolute()
     num_steps = config.num_steps if num_steps is None else num_steps
-    check_config(config)
+    teacher = check_config(config)
     _check_num_steps(num_steps)
     _join_and_check_devices(config, distributed)
     check_workdir_path(workdir)
@@ -159,7 +159,7 @@ def fit(
         process_count=jax.process_count(),
     )
     run = _open_run(config, workdir, initial, allow_config_change)
-    step_fn = jit_train_step(config, run.mesh)
+    step_fn = jit_train_step(config, run.mesh, teacher)
     return _train_steps(config, run, step_fn, dataset, num_steps, progress)
 
 
