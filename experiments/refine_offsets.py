@@ -114,7 +114,12 @@ def main() -> None:
         "--weights", help="the frozen detector's shipped weights (default: the package's)"
     )
     parser.add_argument("--pairs", type=int, default=300, help="image pairs drawn")
-    parser.add_argument("--radius", type=float, default=3.0, help="point-pair distance, px")
+    parser.add_argument(
+        "--radius",
+        type=float,
+        default=3.0,
+        help="point-pair distance, px (also filters the pairs of a --cache built at a larger one)",
+    )
     parser.add_argument("--steps", type=int, default=4000)
     parser.add_argument("--batch", type=int, default=256, help="point pairs per step")
     parser.add_argument("--lr", type=float, default=3e-3)
@@ -154,6 +159,12 @@ def main() -> None:
             patches, points, homographies = data["patches"], data["points"], data["homographies"]
         if patches.shape[-1] != side:
             parser.error(f"--cache {args.cache} holds {patches.shape[-1]} px patches, not {side}")
+        # A cache built at a larger radius holds every pair a smaller one would find (each
+        # point's nearest neighbour is the same), and more.
+        near = np.asarray(distances(None, None, points, homographies))  # the raw points
+        patches, points, homographies = (
+            x[near < args.radius] for x in (patches, points, homographies)
+        )
     else:
         patches, points, homographies = build(
             photos,
