@@ -2,6 +2,7 @@
 the small network, tiny training run and command lines that several test modules use (imported
 from here as ``from conftest import ...``)."""
 
+import gc
 import os
 import sys
 import tempfile
@@ -19,6 +20,14 @@ jax.config.update(
     os.environ.get("USP_JAX_TEST_CACHE", os.path.join(tempfile.gettempdir(), "usp_jax_jit_cache")),
 )
 jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)
+
+
+def pytest_sessionfinish(session):
+    # xdist stops a worker by interrupting its main thread; a KeyboardInterrupt that lands in
+    # JAX's garbage-collection callback printed an "Exception ignored" warning after every run.
+    # The process ends right after the session, so it needs no more collections.
+    gc.disable()
+
 
 #: A network small enough to compile and run in seconds on a CPU: 16-dim descriptors.
 SMALL_MODEL = ModelConfig(
