@@ -91,9 +91,7 @@ def build(photos, pairs, radius, seed, weights=None, side=refine.PATCH, views=Ho
 def moves(params, patches):
     """The offsets [N, 2, 2] of both points of each pair."""
     flat = patches.reshape(-1, *patches.shape[2:])
-    channels = refine.channels_of(params)
-    logits = refine.OffsetNet(channels).apply({"params": params}, refine.normalise(flat))
-    return refine.soft_argmax(logits).reshape(-1, 2, 2)
+    return refine.patch_offsets(params, flat).reshape(-1, 2, 2)
 
 
 def distances(params, patches, points, homographies):

@@ -115,14 +115,19 @@ def test_refining_only_the_strongest_candidates_gives_the_points_of_refining_all
 
 
 def test_the_strongest_candidates_count_covers_the_top_n_and_the_edge_cells():
-    from usp_jax.inference.detector import _refined_candidates
-
     # 240x320: 300 + a ring of one cell at the top and left and two at the bottom and right,
     # where the image may end anywhere in the last cell.
-    assert _refined_candidates(30, 40, 300, 0.0, 0.0, 1) == 300 + 3 * 40 + 3 * 30 - 9
-    assert _refined_candidates(30, 40, 300, 4.0, 0.0, 1) == 1200  # NMS sees the moved points
-    assert _refined_candidates(30, 40, None, 0.0, 0.0, 1) == 1200
-    assert _refined_candidates(5, 6, 10, 0.0, 0.0, 1) == 30  # never more than the candidates
+    assert (
+        refine.refined_count(1200, refine.edge_cells(30, 40, 0.0), 300, 0.0)
+        == 300 + 3 * 40 + 3 * 30 - 9
+    )
+    assert (
+        refine.refined_count(1200, refine.edge_cells(30, 40, 0.0), 300, 4.0) == 1200
+    )  # NMS sees the moved points
+    assert refine.refined_count(1200, refine.edge_cells(30, 40, 0.0), None, 0.0) == 1200
+    assert (
+        refine.refined_count(30, refine.edge_cells(5, 6, 0.0), 10, 0.0) == 30
+    )  # never more than the candidates
 
 
 def test_the_refining_detector_is_one_compiled_function():

@@ -81,18 +81,6 @@ def _select_points(
     )
 
 
-def _refined_candidates(
-    cells_h: int, cells_w: int, top_n: int | None, nms_radius: float, border: float, upsample: int
-) -> int:
-    """How many of the M candidates, strongest first, must be refined for the output to equal
-    refining all M: top_n plus the :func:`refine.edge_cells` (the only points whose keeping a
-    move decides); M where NMS (which sees the moved points) or no top-N cut needs them all."""
-    m = cells_h * cells_w
-    if top_n is None or nms_radius > 0:
-        return m
-    return min(m, top_n + refine_lib.edge_cells(cells_h, cells_w, border, upsample))
-
-
 def _network(
     variables: dict, images: jax.Array, *, model: UnsuperPoint, upsample: int = 1
 ) -> tuple[jax.Array, Predictions]:
@@ -128,14 +116,15 @@ def _detect_padded(
     ``network`` is :func:`_network` with its model and ``upsample`` bound.
 
     With a ``refiner`` the border test and NMS judge the refined points. Without NMS only the
-    strongest :func:`_refined_candidates` points that the move can bring inside are refined (a
+    strongest ``refine.refined_count`` points that the move can bring inside are refined (a
     score does not move), which gives the same points as refining all of them: 501 of 1,200 at
     240x320 / 300, about half the refinement's time.
     """
     pixels, predictions = network(variables, images)
     cells_h, cells_w = pixels.shape[1] // CELL, pixels.shape[2] // CELL
     if refiner is not None:
-        count = _refined_candidates(cells_h, cells_w, top_n, nms_radius, border, upsample)
+        edges = refine_lib.edge_cells(cells_h, cells_w, border, upsample)
+        count = refine_lib.refined_count(cells_h * cells_w, edges, top_n, nms_radius)
         if count < cells_h * cells_w:
             # The points a move of up to REACH can bring inside, strongest first.
             reach = refine_lib.REACH / upsample

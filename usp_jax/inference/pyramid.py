@@ -129,7 +129,7 @@ def detect_pyramid(
         return points.inside(level_pixels, origin.extent, origin.margin[..., None] - slack)
 
     if refiner is not None:
-        count = m if top_n is None or nms_radius > 0 else min(m, top_n + edges)
+        count = refine.refined_count(m, edges, top_n, nms_radius)
         if count < m:
             possible = inside(keypoints, origin, refine.REACH / upsample)
             _, order = jax.lax.top_k(jnp.where(possible, scores, -jnp.inf), count)

@@ -154,6 +154,16 @@ def edge_cells(cells_h: int, cells_w: int, border: float, upsample: int = 1) -> 
     return rows * cells_w + cols * cells_h - rows * cols
 
 
+def refined_count(candidates: int, edges: int, top_n: int | None, nms_radius: float) -> int:
+    """How many of ``candidates`` points, strongest first among those a move can bring inside,
+    must be refined for the output to equal refining all of them: ``top_n`` plus the ``edges``
+    (:func:`edge_cells`, the only points whose keeping a move decides); all of them where NMS
+    (which sees the moved points) or no top-N cut needs them."""
+    if top_n is None or nms_radius > 0:
+        return candidates
+    return min(candidates, top_n + edges)
+
+
 def refine_keypoints(params: dict, pixels: jax.Array, keypoints: jax.Array) -> jax.Array:
     """Refined keypoints [B, K, 2] of images [B, H, W, 3] (the network's input) at keypoints
     [B, K, 2] in those images' pixels: ``p + offsets(p)``, per image."""
