@@ -38,11 +38,28 @@ def test_every_option_has_help_and_its_default(command):
     assert not missing, f"{command}: options without help: {missing}"
     text = parser.format_help()
     for action in _arguments(parser):
-        if action.option_strings and action.default not in (None, False):
+        if action.option_strings and action.nargs != 0 and action.default not in (None, False):
             # The help as shown, %(default)s expanded, states the default.
             shown = parser._get_formatter()._expand_help(action)
             assert "default" in shown, f"{command} {_name(action)}: no default in {shown!r}"
     assert "%(" not in text
+
+
+@pytest.mark.parametrize("command", sorted(COMMANDS))
+def test_no_flag_claims_a_default_value(command):
+    """A flag takes no value, so "(default: True)" after ``--no-refine`` would read as "refinement
+    off by default", the opposite of what it means."""
+    for action in _arguments(COMMANDS[command]):
+        if action.nargs == 0:
+            shown = COMMANDS[command]._get_formatter()._expand_help(action)
+            assert "(default: True)" not in shown, f"{command} {_name(action)}: {shown!r}"
+
+
+def test_no_refine_leaves_the_choice_to_the_weights_unless_given():
+    parser = COMMANDS["evaluate"]
+    assert parser.parse_args(["--hpatches", "x"]).refine is None
+    assert parser.parse_args(["--hpatches", "x", "--no-refine"]).refine is False
+    assert parser.parse_args(["--hpatches", "x", "--refine"]).refine is True
 
 
 def test_weights_help_names_every_shipped_weights():

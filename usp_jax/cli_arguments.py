@@ -108,6 +108,7 @@ def _add_refine(parser) -> None:
         "--no-refine",
         dest="refine",
         action="store_false",
+        default=None,  # store_false's own True would read as "on" in the help; neither = weights'
         help="keep the network's raw positions: skip the sub-pixel refinement of each point"
         " (for the ablation)",
     )
@@ -176,13 +177,15 @@ def _add_max_side(parser, help: str) -> None:
 
 class _HelpFormatter(argparse.HelpFormatter):
     """argparse's help with every option's default shown: a help text that does not state its
-    default itself gets "(default: X)" appended (a flag's False and an unset None are no default)."""
+    default itself gets "(default: X)" appended (an unset None is no default, and neither is a
+    flag's: ``--no-x`` is off unless given, whatever its dest holds then)."""
 
     def _get_help_string(self, action) -> str:
         text = action.help or ""
         default = action.default
         if (
             action.option_strings
+            and action.nargs != 0
             and default not in (None, False, argparse.SUPPRESS)
             and "default" not in text
         ):
