@@ -115,10 +115,10 @@ def _detect_padded(
     """uint8 [B, H, W, 3] (H, W multiples of 8) + sizes [B, 2] -> :func:`_select_points` output;
     ``network`` is :func:`_network` with its model and ``upsample`` bound.
 
-    With a ``refiner`` the border test and NMS judge the refined points. Without NMS only the
-    strongest ``refine.refined_count`` points that the move can bring inside are refined (a
-    score does not move), which gives the same points as refining all of them: 501 of 1,200 at
-    240x320 / 300, about half the refinement's time.
+    With a ``refiner`` the border test and NMS judge the refined points, and the ranking their
+    scores times the certainty of their moves (``refine.patch_moves``). Without NMS only the
+    strongest ``refine.refined_count`` points that the move can bring inside are refined: 501 of
+    1,200 at 240x320 / 300.
     """
     pixels, predictions = network(variables, images)
     cells_h, cells_w = pixels.shape[1] // CELL, pixels.shape[2] // CELL
@@ -136,8 +136,8 @@ def _detect_padded(
             _, order = jax.lax.top_k(jnp.where(possible, predictions.scores, -jnp.inf), count)
             predictions = jax.tree.map(lambda x: points.take(x, order), predictions)
         # In the network's pixels, where the offsets were learned (inference.refine).
-        refined = refine_lib.refine_keypoints(refiner, pixels, predictions.keypoints)
-        predictions = predictions._replace(keypoints=refined)
+        refined, factors = refine_lib.refine_keypoints(refiner, pixels, predictions.keypoints)
+        predictions = predictions._replace(keypoints=refined, scores=predictions.scores * factors)
     predictions = predictions._replace(keypoints=points.to_input(predictions.keypoints, upsample))
     return _select_points(
         predictions, sizes, cells_h, cells_w, top_n, nms_radius, border, CELL / upsample
@@ -235,7 +235,8 @@ class Detector:
     size; ``MAX_SIDE`` suits photos), keypoints mapped back to the original's pixels.
     ``any_scale``: detect on an image pyramid too (``inference.pyramid``), for pairs that differ
     by zoom; each point's size is in ``Features.scales``; one function compiled per input size.
-    ``refine``: move each point by the sub-pixel offset network of ``inference.refine`` (True:
+    ``refine``: move each point by the sub-pixel offset network of ``inference.refine``, and
+    scale its score by how sure the move is, so better localised points rank higher (True:
     the shipped one; a path: an ``.npz`` from ``refine.save_params``; False: the raw cells;
     None: the shipped one for the paper's network, which it was trained on, else none. On the
     distilled network's points it gains as much, at about 1.8x that network's time:

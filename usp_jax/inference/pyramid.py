@@ -13,8 +13,9 @@ level's points are exactly what ``Detector.detect`` finds on that uint8 image), 
 whole 8x8 cells and run through the network; the candidates of all levels are then selected
 together, as the single-scale detector selects one level's: sub-pixel refinement (each point on
 its own level's image), the border test, radius NMS across levels in input pixels, then top-N by
-score over all levels. Without NMS only the strongest candidates of all levels, plus every
-level's edge cells, are refined: 810 of 2,303 at 240x320 / 300 (one level at a time, 1,410). Each
+score over all levels (the refined points' scores times the certainty of their moves). Without
+NMS only the strongest candidates of all levels, plus every level's edge cells, are refined:
+810 of 2,303 at 240x320 / 300 (``refine.refined_count``). Each
 point keeps the descriptor of its own level, and its size (``Features.scales``) is its level's
 cell in input pixels, ``CELL / scale``, so that ``to_cv2`` fills ``cv2.KeyPoint.size``. The
 features of an image do not depend on any other image.
@@ -101,8 +102,8 @@ def detect_pyramid(
     in its pixels) is ``detector._network`` with its model and ``upsample`` s bound. A level's
     border is ``border`` input px, its own in its pixels. With a ``refiner`` the candidates of
     all levels are cut together before the refinement, as ``detector._detect_padded`` cuts one
-    level's: without NMS the strongest ``top_n`` plus every level's ``refine.edge_cells`` (the
-    moved points of all levels compete for one top N), each point read from its own level.
+    level's: without NMS the strongest ``top_n`` plus every level's ``refine.edge_cells`` (the moved, re-scored points of all levels compete for one top
+    N), each point read from its own level.
     """
     batch, height, width = images.shape[:3]
     levels, origins, edges = [], [], 0
@@ -137,7 +138,8 @@ def detect_pyramid(
                 lambda x: points.take(x, order), (keypoints, scores, descriptors, origin)
             )
         level_pixels = [pixels for pixels, _ in levels]
-        keypoints = keypoints + _level_offsets(refiner, level_pixels, keypoints, origin.level)
+        moves, factors = _level_moves(refiner, level_pixels, keypoints, origin.level)
+        keypoints, scores = keypoints + moves, scores * factors
     keep = inside(keypoints, origin)
     # Pixel centres at integers: level pixel x spans input [(x - 0.5) f, (x + 0.5) f] - 0.5.
     keypoints = (points.to_input(keypoints, upsample) + 0.5) * origin.factors - 0.5
@@ -173,19 +175,20 @@ class _Origin(NamedTuple):
         return cls(*(np.full((count, *np.shape(v)), v, np.float32) for v in values))
 
 
-def _level_offsets(
+def _level_moves(
     refiner: dict, pixels: list[jax.Array], keypoints: jax.Array, level: jax.Array
-) -> jax.Array:
-    """``refine.patch_offsets`` of keypoints [B, K, 2], each in the network pixels of its own
-    level (``level`` [B, K], the index into ``pixels``, each [B, h, w, 3]): every point's patch
-    is read from its level, then the offset network runs once on all K."""
+) -> tuple[jax.Array, jax.Array]:
+    """``refine.patch_moves`` (moves [B, K, 2], score factors [B, K]) of keypoints [B, K, 2],
+    each in the network pixels of its own level (``level`` [B, K], the index into ``pixels``,
+    each [B, h, w, 3]): every point's patch is read from its level, then the offset network runs
+    once on all K."""
     side = refine.patch_side(refine.channels_of(refiner))
     read = jax.vmap(refine.sample_patches, in_axes=(0, 0, None))
     patches = jnp.zeros((*keypoints.shape[:2], side, side), jnp.float32)
     for index, image in enumerate(pixels):
         mine = (level == index)[..., None, None]
         patches = jnp.where(mine, read(refine.grey(image), keypoints, side), patches)
-    return jax.vmap(refine.patch_offsets, in_axes=(None, 0))(refiner, patches)
+    return jax.vmap(refine.patch_moves, in_axes=(None, 0))(refiner, patches)
 
 
 def detect_by_size(
