@@ -153,18 +153,24 @@ def test_the_spread_is_the_variance_of_the_softmax_window_against_numpy():
     np.testing.assert_allclose(refine.spread(flat), [2 * reach * (reach + 1) / 3], rtol=1e-5)
 
 
-def test_refined_scores_are_the_network_scores_times_the_certainty_of_their_moves():
-    """Every refined point's score is its raw cell's score times exp(-SPREAD_WEIGHT * spread) of
-    the offset window read at the raw position, so a point that is poorly localised ranks
-    lower; without refinement the scores are the network's."""
+@pytest.mark.parametrize("any_scale", [False, True])
+def test_refined_scores_are_the_network_scores_times_the_certainty_of_their_moves(any_scale):
+    """Every refined point's score is its raw cell's score times exp(-w * spread) of the offset
+    window read at the raw position, so a point that is poorly localised ranks lower; w is
+    ``refine.SPREAD_WEIGHT``, the pyramid's own ``pyramid.SPREAD_WEIGHT`` with ``any_scale``
+    (a 40x48 image has one level). Without refinement the scores are the network's."""
+    from usp_jax.inference import pyramid
+
+    assert pyramid.level_scales(40, 48) == (1.0,)
+    weight = pyramid.SPREAD_WEIGHT if any_scale else refine.SPREAD_WEIGHT
     variables = init_variables(jax.random.PRNGKey(0), SMALL_MODEL)
     image = np.random.default_rng(6).integers(0, 256, (40, 48, 3), dtype=np.uint8)
     raw = Detector(variables, SMALL_MODEL, refine=False).detect(image)
-    refined = Detector(variables, SMALL_MODEL, refine=True).detect(image)
+    refined = Detector(variables, SMALL_MODEL, refine=True, any_scale=any_scale).detect(image)
     params = refine.load_params()
     # Patches read as the detector reads them: from the network's input, scaled to [0, 1].
     patches = refine.sample_patches(refine.grey(image / np.float32(255)), raw.keypoints)
-    _, factors = refine.patch_moves(params, patches)
+    _, factors = refine.patch_moves(params, patches, weight)
     expected = np.sort(np.asarray(raw.scores * factors))[::-1]
     assert np.all(np.asarray(factors) < 1) and np.ptp(np.asarray(factors)) > 0.01
     # Points a move carries out of the image leave; all others keep their cell's factor.

@@ -13,7 +13,8 @@ level's points are exactly what ``Detector.detect`` finds on that uint8 image), 
 whole 8x8 cells and run through the network; the candidates of all levels are then selected
 together, as the single-scale detector selects one level's: sub-pixel refinement (each point on
 its own level's image), the border test, radius NMS across levels in input pixels, then top-N by
-score over all levels (the refined points' scores times the certainty of their moves). Without
+score over all levels (the refined points' scores times the certainty of their moves, weighted
+by ``SPREAD_WEIGHT``). Without
 NMS only the strongest candidates of all levels, plus every level's edge cells, are refined:
 810 of 2,303 at 240x320 / 300 (``refine.refined_count``). Each
 point keeps the descriptor of its own level, and its size (``Features.scales``) is its level's
@@ -39,6 +40,10 @@ from usp_jax.inference.nms import greedy_radius_nms
 STEP = 1 / math.sqrt(2)
 #: Smallest shorter side of a level in px: below, a level has too few cells to hold points.
 MIN_SIDE = 64
+#: ``refine.SPREAD_WEIGHT`` for the pyramid's points: three times the single-scale one. With
+#: a point's copies on several levels to choose from, ranking the better placed ones first
+#: raised HA@3 on the zoomed design pairs from 0.660 to 0.729 (experiments/RESULTS.md).
+SPREAD_WEIGHT = 0.3
 
 
 def level_scales(height: int, width: int, step: float = STEP, min_side: int = MIN_SIDE):
@@ -188,7 +193,7 @@ def _level_moves(
     for index, image in enumerate(pixels):
         mine = (level == index)[..., None, None]
         patches = jnp.where(mine, read(refine.grey(image), keypoints, side), patches)
-    return jax.vmap(refine.patch_moves, in_axes=(None, 0))(refiner, patches)
+    return jax.vmap(refine.patch_moves, in_axes=(None, 0, None))(refiner, patches, SPREAD_WEIGHT)
 
 
 def detect_by_size(

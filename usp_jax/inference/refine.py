@@ -159,11 +159,14 @@ def patch_offsets(params: dict, patches: jax.Array) -> jax.Array:
     return soft_argmax(_logits(params, patches))
 
 
-def patch_moves(params: dict, patches: jax.Array) -> tuple[jax.Array, jax.Array]:
-    """:func:`patch_offsets` [K, 2] and the factor ``exp(-SPREAD_WEIGHT * spread)`` [K] in
-    (0, 1] that the points' scores are multiplied by (module docstring)."""
+def patch_moves(
+    params: dict, patches: jax.Array, weight: float | None = None
+) -> tuple[jax.Array, jax.Array]:
+    """:func:`patch_offsets` [K, 2] and the factor ``exp(-weight * spread)`` [K] in (0, 1] that
+    the points' scores are multiplied by (module docstring; ``weight`` None: ``SPREAD_WEIGHT``)."""
     logits = _logits(params, patches)
-    return soft_argmax(logits), jnp.exp(-SPREAD_WEIGHT * spread(logits))
+    weight = SPREAD_WEIGHT if weight is None else weight
+    return soft_argmax(logits), jnp.exp(-weight * spread(logits))
 
 
 def _logits(params: dict, patches: jax.Array) -> jax.Array:
