@@ -46,8 +46,13 @@ def test_resize_level_is_an_antialiased_opencv_resize(photo):
 
 
 @pytest.mark.parametrize("refine", [False, True])
-def test_each_level_equals_detect_on_the_image_resized_to_it(variables, image, refine):
-    # Refined, each point's patch is read from its own level's image (pyramid._level_offsets).
+def test_each_level_equals_detect_on_the_image_resized_to_it(variables, image, refine, monkeypatch):
+    # Refined, each point's patch is read from its own level's image (pyramid._level_moves).
+    # The pyramid re-scores refined points with a spread weight of its own; given the
+    # single-scale one, its scores are the single-scale detector's (each Detector compiles anew).
+    from usp_jax.inference import refine as refine_lib
+
+    monkeypatch.setattr(pyramid, "SPREAD_WEIGHT", refine_lib.SPREAD_WEIGHT)
     features = Detector(variables, SMALL_MODEL, any_scale=True, refine=refine).detect(image)
     single = Detector(variables, SMALL_MODEL, refine=refine)
     height, width = image.shape[:2]
