@@ -14,9 +14,8 @@ whole 8x8 cells and run through the network; the candidates of all levels are th
 together, as the single-scale detector selects one level's: sub-pixel refinement (each point on
 its own level's image), the border test, radius NMS across levels in input pixels, then top-N by
 score over all levels (the refined points' scores times the certainty of their moves, weighted
-by ``SPREAD_WEIGHT``). Without
-NMS only the strongest candidates of all levels, plus every level's edge cells, are refined:
-810 of 2,303 at 240x320 / 300 (``refine.refined_count``). Each
+by ``SPREAD_WEIGHT``). Without NMS only the strongest candidates of all levels, plus every
+level's edge cells, are refined: 810 of 2,303 at 240x320 / 300 (``refine.refined_count``). Each
 point keeps the descriptor of its own level, and its size (``Features.scales``) is its level's
 cell in input pixels, ``CELL / scale``, so that ``to_cv2`` fills ``cv2.KeyPoint.size``. The
 features of an image do not depend on any other image.
@@ -107,8 +106,9 @@ def detect_pyramid(
     in its pixels) is ``detector._network`` with its model and ``upsample`` s bound. A level's
     border is ``border`` input px, its own in its pixels. With a ``refiner`` the candidates of
     all levels are cut together before the refinement, as ``detector._detect_padded`` cuts one
-    level's: without NMS the strongest ``top_n`` plus every level's ``refine.edge_cells`` (the moved, re-scored points of all levels compete for one top
-    N), each point read from its own level.
+    level's: without NMS the strongest ``top_n`` plus every level's ``refine.edge_cells`` (the
+    moved, re-scored points of all levels compete for one top N), each point read from its own
+    level.
     """
     batch, height, width = images.shape[:3]
     levels, origins, edges = [], [], 0

@@ -125,32 +125,44 @@ def normalise(patches: jax.Array, eps: float = 1e-2) -> jax.Array:
 
 def soft_argmax(logits: jax.Array) -> jax.Array:
     """Logits [K, 2R + 1, 2R + 1] -> expected (x, y) offset [K, 2] in [-R, R] (columns are x)."""
+    return _window_moments(logits)[0]
+
+
+def spread(logits: jax.Array) -> jax.Array:
+    """Logits [K, 2R + 1, 2R + 1] -> the variance of the offset under their softmax, summed over
+    x and y [K] (px^2): 0 for a single peak, 2 R (R + 1) / 3 for a flat window."""
+    return _window_moments(logits)[1]
+
+
+def _window_moments(logits: jax.Array) -> tuple[jax.Array, jax.Array]:
+    """:func:`soft_argmax` [K, 2] and :func:`spread` [K] from one softmax of the window."""
     reach = (logits.shape[-1] - 1) / 2
     weights = jax.nn.softmax(logits.reshape(*logits.shape[:-2], -1), axis=-1).reshape(logits.shape)
     steps = jnp.arange(logits.shape[-1], dtype=jnp.float32) - reach
-    return jnp.stack(
+    mean = jnp.stack(
         [
             jnp.sum(weights * steps[None, :], axis=(-2, -1)),
             jnp.sum(weights * steps[:, None], axis=(-2, -1)),
         ],
         axis=-1,
     )
-
-
-def spread(logits: jax.Array) -> jax.Array:
-    """Logits [K, 2R + 1, 2R + 1] -> the variance of the offset under their softmax, summed over
-    x and y [K] (px^2): 0 for a single peak, 2 R (R + 1) / 3 for a flat window."""
-    weights = jax.nn.softmax(logits.reshape(*logits.shape[:-2], -1), axis=-1).reshape(logits.shape)
-    steps = jnp.arange(logits.shape[-1], dtype=jnp.float32) - (logits.shape[-1] - 1) / 2
     squares = steps[None, :] ** 2 + steps[:, None] ** 2
-    mean = soft_argmax(logits)
-    return jnp.sum(weights * squares, axis=(-2, -1)) - jnp.sum(mean**2, axis=-1)
+    return mean, jnp.sum(weights * squares, axis=(-2, -1)) - jnp.sum(mean**2, axis=-1)
 
 
 def offsets(params: dict, image: jax.Array, keypoints: jax.Array) -> jax.Array:
     """The learned moves [K, 2] of keypoints [K, 2] on grey image [H, W], both in the same pixels;
     ``|move| <= REACH`` per axis."""
-    return patch_offsets(params, sample_patches(image, keypoints, patch_side(channels_of(params))))
+    return moves(params, image, keypoints)[0]
+
+
+def moves(
+    params: dict, image: jax.Array, keypoints: jax.Array, weight: float | None = None
+) -> tuple[jax.Array, jax.Array]:
+    """:func:`patch_moves` of keypoints [K, 2] on grey image [H, W]: their patches read by
+    :func:`sample_patches` at the offset network's patch side."""
+    patches = sample_patches(image, keypoints, patch_side(channels_of(params)))
+    return patch_moves(params, patches, weight)
 
 
 def patch_offsets(params: dict, patches: jax.Array) -> jax.Array:
@@ -164,9 +176,9 @@ def patch_moves(
 ) -> tuple[jax.Array, jax.Array]:
     """:func:`patch_offsets` [K, 2] and the factor ``exp(-weight * spread)`` [K] in (0, 1] that
     the points' scores are multiplied by (module docstring; ``weight`` None: ``SPREAD_WEIGHT``)."""
-    logits = _logits(params, patches)
+    mean, variance = _window_moments(_logits(params, patches))
     weight = SPREAD_WEIGHT if weight is None else weight
-    return soft_argmax(logits), jnp.exp(-weight * spread(logits))
+    return mean, jnp.exp(-weight * variance)
 
 
 def _logits(params: dict, patches: jax.Array) -> jax.Array:
@@ -206,10 +218,8 @@ def refine_keypoints(
     """Refined keypoints [B, K, 2] of images [B, H, W, 3] (the network's input) at keypoints
     [B, K, 2] in those images' pixels, ``p + offsets(p)``, and the factors [B, K] their scores
     are multiplied by (:func:`patch_moves`), per image."""
-    side = patch_side(channels_of(params))
-    patches = jax.vmap(sample_patches, in_axes=(0, 0, None))(grey(pixels), keypoints, side)
-    moves, factors = jax.vmap(patch_moves, in_axes=(None, 0))(params, patches)
-    return keypoints + moves, factors
+    shifts, factors = jax.vmap(moves, in_axes=(None, 0, 0))(params, grey(pixels), keypoints)
+    return keypoints + shifts, factors
 
 
 def save_params(path: str | pathlib.Path, params: dict) -> None:
