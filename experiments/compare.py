@@ -29,6 +29,12 @@ intervals; each ``--pool RESULTS AGAINST`` adds one more draw of pairs (another
 ``usp-jax make-pairs --seed``) to that comparison:
 
     python3 experiments/compare.py A.json --against B.json --versus-baselines --pool A2.json B2.json
+
+With ``--zoom`` naming one evaluated folder per draw (the first, then each ``--pool``'s), that
+comparison is also printed for each zoom bin, over the bin's pairs of all draws:
+
+    python3 experiments/compare.py A.json --against B.json --versus-baselines \
+        --pool A2.json B2.json --zoom PAIRS PAIRS2
 """
 
 from __future__ import annotations
@@ -37,7 +43,14 @@ import argparse
 import json
 import pathlib
 
-from usp_jax.evaluation.analysis import by_rotation, by_view, by_zoom, markdown_by_view
+from usp_jax.evaluation.analysis import (
+    by_rotation,
+    by_view,
+    by_zoom,
+    markdown_by_view,
+    zoom_bin_label,
+    zoom_bins,
+)
 from usp_jax.evaluation.protocol import METRICS
 from usp_jax.evaluation.statistics import (
     MODEL,
@@ -61,8 +74,11 @@ def main() -> None:
     parser.add_argument(
         "--zoom",
         metavar="PAIRS",
+        nargs="+",
         help="also break the viewpoint pairs down by zoom (<0.71, 0.71-1, 1-1.41, >=1.41, from"
-        " their homographies at image 1's centre), reading them from PAIRS, the evaluated folder",
+        " their homographies at image 1's centre), reading them from PAIRS, the evaluated folder;"
+        " with --versus-baselines, one folder per draw (the first, then each --pool's) also"
+        " breaks that comparison down by zoom",
     )
     parser.add_argument(
         "--intervals",
@@ -88,6 +104,12 @@ def main() -> None:
         parser.error("--versus-baselines and --pool compare the --against model: give --against")
     if args.pool and not args.versus_baselines:
         parser.error("--pool pools draws for --versus-baselines: give --versus-baselines")
+    draws = 1 + len(args.pool)
+    if args.zoom and len(args.zoom) > 1 and (not args.versus_baselines or len(args.zoom) != draws):
+        parser.error(
+            f"--zoom takes one folder, or with --versus-baselines one per draw ({draws}),"
+            f" got {len(args.zoom)}"
+        )
     files = [args.results, *([args.against] if args.against else []), *sum(args.pool, [])]
     try:
         evaluations = {path: read_evaluation(path) for path in files}
@@ -107,7 +129,7 @@ def main() -> None:
     joined = rows + ([] if new_rows is None else labelled(new_rows, label))
     breakdowns = (
         ("--rotation", args.rotation, by_rotation, "rotation (deg)"),
-        ("--zoom", args.zoom, by_zoom, "zoom"),
+        ("--zoom", args.zoom[0] if args.zoom else None, by_zoom, "zoom"),
     )
     for flag, pairs, breakdown, group in breakdowns:
         if pairs:
@@ -132,11 +154,26 @@ def main() -> None:
                 f"   difference {difference:+.3f}  [{d_low:+.3f}, {d_high:+.3f}]"
             )
     if args.versus_baselines:
+        draws = [(rows, new_rows), *pooled]
         try:
-            table = versus_baselines([(rows, new_rows), *pooled], args.rounds)
+            table = versus_baselines(draws, args.rounds)
         except ValueError as error:
             parser.error(f"--versus-baselines: a draw's two files differ in their pairs: {error}")
         print("\n" + table)
+        if args.zoom and len(args.zoom) == len(draws):
+            try:
+                bins = [zoom_bins(new, pairs) for (_, new), pairs in zip(draws, args.zoom)]
+            except (OSError, ValueError) as error:
+                parser.error(f"--zoom: {error}")
+            for index in sorted(set().union(*(b.values() for b in bins))):
+                print(
+                    f"\nzoom {zoom_bin_label(index)}: "
+                    + versus_baselines(
+                        draws,
+                        args.rounds,
+                        keep=lambda draw, r: bins[draw][r["scene"], r["k"]] == index,
+                    )
+                )
 
 
 def read_evaluation(path: str) -> tuple[list[dict], int]:
@@ -147,12 +184,17 @@ def read_evaluation(path: str) -> tuple[list[dict], int]:
     return evaluation["pairs"], int(evaluation.get("config", {}).get("ransac_orders", 1))
 
 
-def versus_baselines(draws: list[tuple[list[dict], list[dict]]], rounds: int) -> str:
+def versus_baselines(
+    draws: list[tuple[list[dict], list[dict]]], rounds: int, keep=lambda draw, row: True
+) -> str:
     """A markdown table: over the viewpoint pairs of every draw (rows, new rows) pooled, the new
     rows' model's HA at eps 1/3/5 and MS minus each other method's in the first rows, with the
-    95% paired-bootstrap interval (``statistics.paired_difference``)."""
+    95% paired-bootstrap interval (``statistics.paired_difference``); only the pairs that
+    ``keep(draw index, row)`` accepts (a zoom bin's, say)."""
     model, others = [], []
     for index, (rows, new_rows) in enumerate(draws):
+        new_rows = [r for r in new_rows if r["split"] != "v" or keep(index, r)]
+        rows = [r for r in rows if r["split"] != "v" or keep(index, r)]
         model += _viewpoint_rows(new_rows, index, lambda method: method == MODEL)
         others += _viewpoint_rows(rows, index, lambda method: method != MODEL)
     shown = ("ha1", "ha3", "ha5", "ms")

@@ -560,6 +560,62 @@ def test_compare_versus_baselines_pools_draws_of_the_same_scenes_pair_by_pair(tm
     assert "a draw's two files differ in their pairs" in mismatched.stderr
 
 
+def _zoomed_pairs(root, zooms):
+    """A pairs folder whose scene v_i's pair (1, 2) is zoomed by zooms[i] about image 1's centre."""
+    import cv2
+
+    image = np.zeros((60, 80, 3), np.uint8)
+    for i, zoom in enumerate(zooms):
+        scene = root / f"v_{i}"
+        scene.mkdir(parents=True)
+        for k in (1, 2):
+            cv2.imwrite(str(scene / f"{k}.ppm"), image)
+        centre = np.array([[1, 0, 39.5], [0, 1, 29.5], [0, 0, 1]])
+        np.savetxt(scene / "H_1_2", centre @ np.diag([zoom, zoom, 1]) @ np.linalg.inv(centre))
+    return root
+
+
+def test_compare_versus_baselines_breaks_pooled_draws_down_by_zoom_with_a_folder_per_draw(
+    tmp_path,
+):
+    # Two draws of four scenes, two zoomed out (0.5x) and two in (2x) in each: ORB fails the
+    # zoomed-in pairs only, the --against model none, so it is 1.0 above ORB on HA@3 at >=1.41
+    # over 4 pooled pairs and level below 0.71.
+    folders = [_zoomed_pairs(tmp_path / f"pairs{d}", (0.5, 0.5, 2.0, 2.0)) for d in range(2)]
+    paths = []
+    for draw in range(2):
+        base = [_pair_row("ORB", "v", 2, 1.0 if i < 2 else 9.0, scene=f"v_{i}") for i in range(4)]
+        new = [_pair_row("UnsuperPoint", "v", 2, 1.0, scene=f"v_{i}") for i in range(4)]
+        # The first file's own model (an older one) is not a baseline.
+        base += [_pair_row("UnsuperPoint", "v", 2, 9.0, scene=f"v_{i}") for i in range(4)]
+        for name, rows in (("base", base), ("new", new)):
+            paths.append(tmp_path / f"{name}{draw}.json")
+            paths[-1].write_text(json.dumps({"pairs": rows}))
+    command = [sys.executable, str(EXPERIMENTS / "compare.py"), str(paths[0])]
+    command += ["--against", str(paths[1]), "--versus-baselines", "--rounds", "50"]
+    command += ["--pool", str(paths[2]), str(paths[3])]
+    run = subprocess.run(
+        command + ["--zoom", *map(str, folders)], capture_output=True, text=True, check=True
+    )
+
+    def orb_ha3(label):
+        table = run.stdout.split(f"zoom {label}: ")[1]
+        assert "4 viewpoint pairs of 2 draw(s)" in table.split("\n")[0]
+        row = next(line for line in table.splitlines() if line.startswith("| ORB |"))
+        return row.split(" | ")[2]
+
+    assert orb_ha3("<0.71").startswith("+0.000 [+0.000, +0.000]")
+    assert orb_ha3(">=1.41").startswith("+1.000 [+1.000, +1.000]")
+    assert "zoom 0.71-1" not in run.stdout  # empty bins are left out
+    # One folder for two draws: one line naming the count, no traceback.
+    refused = subprocess.run(
+        command + ["--zoom", str(folders[0]), str(folders[0]), str(folders[1])],
+        capture_output=True,
+        text=True,
+    )
+    assert refused.returncode == 2 and "one per draw (2), got 3" in refused.stderr
+
+
 def test_compare_prints_the_rotation_table_of_every_method_in_30_degree_ranges_up_to_180(tmp_path):
     import cv2
 

@@ -95,14 +95,26 @@ def by_zoom(rows: list[dict], pairs_root: str | pathlib.Path, edges=ZOOM_EDGES) 
     :func:`by_rotation`, binned by :func:`zoom_of` of each pair's homography (read from
     ``pairs_root``, the folder that was evaluated); bins in increasing zoom, empty ones left
     out."""
-    zooms = _pair_measure(rows, pairs_root, zoom_of)
-    table = _statistics(
-        rows, lambda row: int(np.searchsorted(edges, zooms[row["scene"], row["k"]], side="right"))
-    )
-    lows = (0.0, *edges)
+    bins = zoom_bins(rows, pairs_root, edges)
+    table = _statistics(rows, lambda row: bins[row["scene"], row["k"]])
     return {
-        m: {zoom_label(lows[i], edges): s for i, s in groups.items()} for m, groups in table.items()
+        m: {zoom_bin_label(i, edges): s for i, s in groups.items()} for m, groups in table.items()
     }
+
+
+def zoom_bins(
+    rows: list[dict], pairs_root: str | pathlib.Path, edges=ZOOM_EDGES
+) -> dict[tuple[str, int], int]:
+    """``{(scene, k): bin}`` of the viewpoint pairs of evaluation rows: the index of the bin
+    (0 below ``edges[0]``) that :func:`zoom_of` of the pair's homography falls in (read from
+    ``pairs_root``, the folder that was evaluated)."""
+    zooms = _pair_measure(rows, pairs_root, zoom_of)
+    return {pair: int(np.searchsorted(edges, zoom, side="right")) for pair, zoom in zooms.items()}
+
+
+def zoom_bin_label(index: int, edges=ZOOM_EDGES) -> str:
+    """The label of bin ``index`` of :func:`zoom_bins` (``<0.71`` ... ``>=1.41``)."""
+    return zoom_label((0.0, *edges)[index], edges)
 
 
 def _statistics(rows: list[dict], group_of) -> dict[str, dict]:
