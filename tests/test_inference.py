@@ -213,6 +213,33 @@ def test_bad_images_raise_one_line_value_error_naming_the_shape(detector, bad):
     assert "\n" not in str(error.value)
 
 
+@pytest.mark.parametrize("any_scale", [False, True])
+@pytest.mark.parametrize("interpolate", [True, False])
+def test_a_top_n_detector_computes_its_points_descriptors_alone_and_the_same(
+    variables, photo, any_scale, interpolate, monkeypatch
+):
+    """Few points kept: only theirs are computed (``model.describe``), equal to the whole
+    descriptor map's that every point gets; also where descriptors are not interpolated."""
+    calls = []
+    describe = detector_lib.describe_points
+    monkeypatch.setattr(
+        detector_lib, "describe_points", lambda *a, **k: calls.append(1) or describe(*a, **k)
+    )
+    config = dataclasses.replace(SMALL_MODEL, interpolate_descriptors=interpolate)
+    image = np.ascontiguousarray(photo[100:231, 150:313])  # 17 x 21 cells, 3 levels
+    detector = Detector(variables, config, any_scale=any_scale)
+    every = detector.detect(image)
+    assert not calls  # all points: the whole map, no sparse path
+    top = detector.detect(image, top_n=20)
+    assert calls  # 20 of 357 cells: their descriptors alone
+    np.testing.assert_array_equal(top.keypoints, every.keypoints[:20])
+    np.testing.assert_array_equal(top.scores, every.scores[:20])
+    np.testing.assert_allclose(top.descriptors, every.descriptors[:20], atol=1e-5)
+    assert inference.points.describes_sparsely(20, 357)
+    assert not inference.points.describes_sparsely(None, 357)
+    assert not inference.points.describes_sparsely(100, 357)
+
+
 def test_images_that_pad_to_one_shape_compile_once(variables, image, monkeypatch):
     traces = []
     select = detector_lib._select_points

@@ -12,8 +12,12 @@ from usp_jax.core.model import (
     ModelConfig,
     UnsuperPoint,
     bilinear_sample,
+    describe,
+    descriptor_neighbourhoods,
     fast_config,
     init_variables,
+    l2_normalize,
+    pad_descriptor_features,
     relative_to_pixels,
 )
 
@@ -110,6 +114,81 @@ def test_interpolation_off_reads_the_cell_descriptor():
     off = apply(ModelConfig(**{**SMALL.__dict__, "interpolate_descriptors": False}), images)
     np.testing.assert_allclose(on.scores, off.scores)
     assert not np.allclose(on.descriptors, off.descriptors)
+
+
+def _conv_then_sample(params, features, xy):
+    """The dense reference: the descriptor head's last 3x3 "SAME" conv over the whole map
+    (lax), then bilinear_sample at xy and L2 normalisation."""
+    kernel, bias = params["descriptor"]["kernel"], params["descriptor"]["bias"]
+    dense = jax.lax.conv_general_dilated(
+        features[None], kernel, (1, 1), "SAME", dimension_numbers=("NHWC", "HWIO", "NHWC")
+    )[0]
+    return l2_normalize(bilinear_sample(dense + bias, xy))
+
+
+@pytest.mark.parametrize("shape", [(3, 5), (1, 4), (4, 1), (2, 2)])
+def test_descriptors_of_chosen_points_equal_the_convolved_map_sampled_there(shape):
+    """Section 2.3's interpolated descriptor from the last conv's interpolated input
+    neighbourhoods: inside, between, on and beyond the border cells, and 1-cell-wide maps."""
+    rng = np.random.default_rng(len(shape) + shape[0])
+    h, w = shape
+    features = jnp.asarray(rng.normal(size=(h, w, 6)), jnp.float32)
+    params = {
+        "descriptor": {
+            "kernel": jnp.asarray(rng.normal(size=(3, 3, 6, 5)), jnp.float32),
+            "bias": jnp.asarray(rng.normal(size=5), jnp.float32),
+        }
+    }
+    xy = jnp.asarray(
+        np.concatenate(
+            [rng.uniform(-12, [8 * w + 12, 8 * h + 12], size=(40, 2)), [[3.5, 3.5], [-0.5, -0.5]]]
+        ),
+        jnp.float32,
+    )
+    padded = pad_descriptor_features(features[None])[0]
+    got = describe(params, descriptor_neighbourhoods(padded, xy, h, w))
+    np.testing.assert_allclose(got, _conv_then_sample(params, features, xy), atol=1e-5)
+
+
+def test_descriptors_of_points_on_several_maps_come_from_one_buffer():
+    """A pyramid's levels: each point reads its own map, by its size and first row."""
+    rng = np.random.default_rng(3)
+    maps = [jnp.asarray(rng.normal(size=(h, w, 4)), jnp.float32) for h, w in ((3, 4), (2, 3))]
+    params = {
+        "descriptor": {
+            "kernel": jnp.asarray(rng.normal(size=(3, 3, 4, 3)), jnp.float32),
+            "bias": jnp.zeros(3),
+        }
+    }
+    padded = [pad_descriptor_features(m[None])[0] for m in maps]
+    xy = jnp.asarray(rng.uniform(0, 24, size=(10, 2)), jnp.float32)
+    level = np.arange(10) % 2
+    heights, widths = np.array([3, 2])[level], np.array([4, 3])[level]
+    offsets = np.array([0, len(padded[0])])[level]
+    neighbourhoods = descriptor_neighbourhoods(
+        jnp.concatenate(padded), xy, jnp.asarray(heights), jnp.asarray(widths), offsets
+    )
+    got = describe(params, neighbourhoods)
+    for i in range(2):
+        want = _conv_then_sample(params, maps[i], xy[level == i])
+        np.testing.assert_allclose(got[level == i], want, atol=1e-5)
+
+
+@pytest.mark.parametrize("config", [SMALL, SMALL_FAST], ids=["vgg", "fast"])
+def test_a_sparse_network_returns_the_features_its_descriptors_are_computed_from(config):
+    images = jax.random.uniform(jax.random.PRNGKey(4), (2, 32, 48, 3))
+    variables = init_variables(jax.random.PRNGKey(0), config)
+    dense = jax.jit(UnsuperPoint(config).apply)(variables, images)
+    sparse_apply = jax.jit(UnsuperPoint(config, sparse_descriptors=True).apply)
+    predictions, features, anchors = sparse_apply(variables, images)
+    assert predictions.descriptors is None and features.shape[:3] == (2, 4, 6)
+    np.testing.assert_array_equal(predictions.scores, dense.scores)
+    np.testing.assert_array_equal(anchors, dense.keypoints)  # interpolated: read at the points
+    padded = pad_descriptor_features(features)
+    for b in range(2):
+        neighbourhoods = descriptor_neighbourhoods(padded[b], dense.keypoints[b], 4, 6)
+        got = describe(variables["params"], neighbourhoods)
+        np.testing.assert_allclose(got, dense.descriptors[b], atol=1e-5)
 
 
 @pytest.mark.parametrize("shape", [(1, 30, 32, 3), (1, 32, 4, 3), (32, 32, 3)])

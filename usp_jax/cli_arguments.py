@@ -88,7 +88,7 @@ def _add_any_scale(parser) -> None:
         "--any-scale",
         action="store_true",
         help="match across zoom: detect on an image pyramid too (steps of 1/sqrt(2) down to a"
-        " 64 px side, 1.9x the time at 240x320); keypoints get sizes from their level",
+        " 64 px side, 1.85x the time at 240x320); keypoints get sizes from their level",
     )
 
 

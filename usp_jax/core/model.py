@@ -97,13 +97,13 @@ class Predictions(NamedTuple):
     scores:      [..., M]     in [0, 1] (score head + sigmoid).
     relative:    [..., M, 2]  (x, y) position inside the cell in [0, 1] (position head + sigmoid).
     keypoints:   [..., M, 2]  (x, y) pixel coordinates, module docstring convention.
-    descriptors: [..., M, F]  L2-normalised.
+    descriptors: [..., M, F]  L2-normalised; None from ``UnsuperPoint(sparse_descriptors=True)``.
     """
 
     scores: jax.Array
     relative: jax.Array
     keypoints: jax.Array
-    descriptors: jax.Array
+    descriptors: jax.Array | None
 
 
 def check_image_size(height: int, width: int) -> None:
@@ -136,16 +136,10 @@ def bilinear_sample(feature_map: jax.Array, xy: jax.Array) -> jax.Array:
     are differentiable in xy, which is what lets the descriptor loss train positions (section 2.4).
     """
     h, w, _ = feature_map.shape
-    u = (xy[:, 0] + 0.5) / CELL - 0.5
-    v = (xy[:, 1] + 0.5) / CELL - 0.5
-    u = jnp.clip(u, 0.0, w - 1.0)
-    v = jnp.clip(v, 0.0, h - 1.0)
-    u0 = jnp.clip(jnp.floor(u), 0, max(w - 2, 0)).astype(jnp.int32)
-    v0 = jnp.clip(jnp.floor(v), 0, max(h - 2, 0)).astype(jnp.int32)
+    u0, v0, du, dv = _bilinear_corner(xy, h, w)
     u1 = jnp.minimum(u0 + 1, w - 1)
     v1 = jnp.minimum(v0 + 1, h - 1)
-    du = (u - u0)[:, None]
-    dv = (v - v0)[:, None]
+    du, dv = du[:, None], dv[:, None]
     corners = jnp.stack([v0 * w + u0, v0 * w + u1, v1 * w + u0, v1 * w + u1], axis=1)  # [N, 4]
     # One gather for all four corners. The clips keep every index inside the map, so the gather
     # may skip its bounds handling (a select over the whole result, and the larger share of the
@@ -155,6 +149,71 @@ def bilinear_sample(feature_map: jax.Array, xy: jax.Array) -> jax.Array:
     top = values[:, 0] * (1 - du) + values[:, 1] * du
     bottom = values[:, 2] * (1 - du) + values[:, 3] * du
     return top * (1 - dv) + bottom * dv
+
+
+def _bilinear_corner(xy: jax.Array, h, w) -> tuple[jax.Array, ...]:
+    """The top-left cell (u0, v0) [N] int32 that pixel positions xy [N, 2] read from an h x w
+    map (:func:`bilinear_sample`; h, w scalars or [N]), and the weights (du, dv) [N] of the cells
+    right of and below it."""
+    u = jnp.clip((xy[:, 0] + 0.5) / CELL - 0.5, 0.0, w - 1.0)
+    v = jnp.clip((xy[:, 1] + 0.5) / CELL - 0.5, 0.0, h - 1.0)
+    u0 = jnp.clip(jnp.floor(u), 0, jnp.maximum(w - 2, 0)).astype(jnp.int32)
+    v0 = jnp.clip(jnp.floor(v), 0, jnp.maximum(h - 2, 0)).astype(jnp.int32)
+    return u0, v0, u - u0, v - v0
+
+
+def pad_descriptor_features(features: jax.Array) -> jax.Array:
+    """[B, h, w, C] -> [B, (h + 3) (w + 3), C]: zero-padded by one cell above and left and two
+    below and right (the last 3x3 convolution's "SAME" zeros, and room for the 4x4 block of
+    :func:`descriptor_neighbourhoods` at any corner), rows flattened."""
+    padded = jnp.pad(features, ((0, 0), (1, 2), (1, 2), (0, 0)))
+    return padded.reshape(padded.shape[0], -1, padded.shape[-1])
+
+
+def descriptor_neighbourhoods(padded: jax.Array, xy: jax.Array, h, w, offset=0) -> jax.Array:
+    """The 3x3 input neighbourhoods [N, 3, 3, C] of the descriptor head's last convolution,
+    bilinearly interpolated at pixel positions xy [N, 2] as :func:`bilinear_sample` reads that
+    convolution's output (section 2.3's interpolated descriptors).
+
+    ``padded`` [P, C]: rows of :func:`pad_descriptor_features` of one image, where each point's
+    h x w map starts at row ``offset`` (h, w, offset: scalars or [N], so that points of several
+    maps, a pyramid's levels, are read in one gather). The convolution is linear and the
+    bilinear weights sum to 1, so ``conv(neighbourhood) = bilinear_sample(conv(map))``: the
+    descriptors of N points cost N cells' convolution, not the whole map's (:func:`describe`).
+    """
+    u0, v0, du, dv = _bilinear_corner(xy, h, w)
+    steps = jnp.arange(4)
+    # The 4x4 block of padded cells whose 3x3 windows at (v0, u0), (v0, u0 + 1), (v0 + 1, u0)
+    # and (v0 + 1, u0 + 1) are the four corners' neighbourhoods (padded row v0 = map row v0 - 1).
+    rows = (v0[:, None] + steps) * (jnp.asarray(w) + 3)[..., None]
+    block = jnp.asarray(offset)[..., None, None] + rows[:, :, None] + u0[:, None, None] + steps
+    values = padded.at[block].get(mode="promise_in_bounds")  # [N, 4, 4, C]
+    du, dv = du[:, None, None, None], dv[:, None, None, None]
+    top = values[:, :3, :3] * (1 - du) + values[:, :3, 1:] * du
+    bottom = values[:, 1:, :3] * (1 - du) + values[:, 1:, 1:] * du
+    return top * (1 - dv) + bottom * dv
+
+
+def describe(params: dict, neighbourhoods: jax.Array, dtype: str = "float32") -> jax.Array:
+    """L2-normalised descriptors [..., F] from :func:`descriptor_neighbourhoods` [..., 3, 3, C]:
+    the descriptor head's last 3x3 convolution (``params["descriptor"]``) applied at those
+    points only, in ``dtype`` as the network computes it."""
+    kernel, bias = params["descriptor"]["kernel"], params["descriptor"]["bias"]
+    dtype = jnp.dtype(dtype)
+    flat = neighbourhoods.reshape(*neighbourhoods.shape[:-3], -1).astype(dtype)
+    out = flat @ kernel.reshape(-1, kernel.shape[-1]).astype(dtype) + bias.astype(dtype)
+    return l2_normalize(out.astype(jnp.float32))
+
+
+def describe_points(
+    params: dict, padded: jax.Array, anchors: jax.Array, maps: tuple, dtype: str = "float32"
+) -> jax.Array:
+    """:func:`describe` of points of a batch: descriptors [B, K, F] read at anchors [B, K, 2]
+    from :func:`pad_descriptor_features` rows [B, P, C]; ``maps``: each point's map height,
+    width and first row in ``padded`` (:func:`descriptor_neighbourhoods`), [B, K] each."""
+    read = jax.vmap(descriptor_neighbourhoods)
+    neighbourhoods = read(padded, anchors, *(jnp.asarray(x, jnp.int32) for x in maps))
+    return describe(params, neighbourhoods, dtype)
 
 
 def max_pool_2x2(x: jax.Array) -> jax.Array:
@@ -250,15 +309,24 @@ class UnsuperPoint(nn.Module):
     """Backbone + score, position and descriptor heads (paper Fig. 1, section 2).
 
     Input: images [B, H, W, 3] float in [0, 1], H and W multiples of 8.
-    Output: ``Predictions`` with a leading batch axis.
+    Output: ``Predictions`` with a leading batch axis; with ``sparse_descriptors``, (Predictions
+    without descriptors, the descriptor head's hidden features [B, H/8, W/8, C], anchors
+    [B, M, 2]: where each cell's descriptor is read, its keypoint or, without
+    ``interpolate_descriptors``, its centre), from which :func:`describe_points` computes chosen
+    points' descriptors.
     """
 
     config: ModelConfig = ModelConfig()
     # The CPU backend's kernels (``cpu_kernels``, same results): None uses them on CPU only.
     use_cpu_kernels: bool | None = None
+    # Inference that keeps few points: skip the descriptor head's last convolution and return
+    # its input, for :func:`describe` at the kept points.
+    sparse_descriptors: bool = False
 
     @nn.compact
-    def __call__(self, images: jax.Array, train: bool = False) -> Predictions:
+    def __call__(
+        self, images: jax.Array, train: bool = False
+    ) -> Predictions | tuple[Predictions, jax.Array, jax.Array]:
         cfg = self.config
         pool, few_outputs_conv = _kernels(self.use_cpu_kernels)
         if images.ndim != 4 or images.shape[-1] != 3:
@@ -294,6 +362,8 @@ class UnsuperPoint(nn.Module):
             hidden_kernel=3,
         ):
             hidden = conv_bn_act(inputs, hidden_channels, kernel=(hidden_kernel, hidden_kernel))
+            if name == "descriptor" and self.sparse_descriptors:
+                return hidden
             out = nn.Conv(
                 out_channels,
                 (3, 3),
@@ -318,6 +388,10 @@ class UnsuperPoint(nn.Module):
             hidden_kernel=cfg.descriptor_head_kernel,
         )
         keypoints = relative_to_pixels(relative, cells_h, cells_w)
+        if self.sparse_descriptors:
+            centres = relative_to_pixels(jnp.full_like(relative, 0.5), cells_h, cells_w)
+            anchors = keypoints if cfg.interpolate_descriptors else centres
+            return Predictions(scores, relative, keypoints, None), descriptor_map, anchors
         if cfg.interpolate_descriptors:
             descriptors = jax.vmap(bilinear_sample)(descriptor_map, keypoints)
         else:

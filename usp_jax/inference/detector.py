@@ -2,8 +2,9 @@
 
 One jitted function per detector does everything on the device: uint8 -> float, an optional
 enlargement (``upsample``), the network, dropping points in the padding and the border, radius
-NMS, top-N selection and the gather of the selected descriptors (interpolated inside the model,
-paper section 2.4). The host only pads images to whole 8x8 cells and slices the fixed-size
+NMS, top-N selection and the descriptors of the selected points alone (interpolated as inside
+the model, paper section 2.4: ``model.describe`` runs the descriptor head's last convolution on
+the kept points only). The host only pads images to whole 8x8 cells and slices the fixed-size
 results. Coordinates follow the project's convention (``usp_jax.core.model`` docstring): (x, y),
 pixel centres at integers, as in OpenCV.
 
@@ -29,7 +30,14 @@ import jax.numpy as jnp
 import numpy as np
 
 from usp_jax.core.cpu_kernels import compiler_options
-from usp_jax.core.model import CELL, ModelConfig, Predictions, UnsuperPoint
+from usp_jax.core.model import (
+    CELL,
+    ModelConfig,
+    Predictions,
+    UnsuperPoint,
+    describe_points,
+    pad_descriptor_features,
+)
 from usp_jax.inference import points, pyramid, weights
 from usp_jax.inference import refine as refine_lib
 from usp_jax.inference.features import Features
@@ -41,7 +49,8 @@ from usp_jax.inference.nms import NEIGHBOUR_REACH, radius_nms
 
 
 def _select_points(
-    predictions,
+    keypoints: jax.Array,
+    scores: jax.Array,
     sizes: jax.Array,
     cells_h: int,
     cells_w: int,
@@ -50,16 +59,16 @@ def _select_points(
     border: float,
     cell: float,
 ) -> tuple[jax.Array, ...]:
-    """Drop padding/border points, NMS, top-N: batched Predictions -> fixed-size outputs.
+    """Drop padding/border points, NMS, top-N: keypoints [B, M, 2] and scores [B, M] ->
+    keypoints [B, K, 2], scores [B, K] sorted descending, the order [B, K] they were taken in
+    (indices into M) and counts [B]: only the first counts[b] entries of image b are points.
 
     sizes: int32 [B, 2] (height, width) of each image before padding, in the keypoints' pixels;
     ``cell``: a cell's side in those pixels (:func:`radius_nms`, which needs the M points on
     the cells_h x cells_w grid; without NMS any M will do). A point is kept when it is at least
     ``border`` px from the image edges, which lie at -0.5 and size - 0.5 in pixel-centre
-    coordinates. Returns keypoints [B, K, 2], scores [B, K], descriptors [B, K, F] sorted by
-    score, and counts [B]: only the first counts[b] entries of image b are points.
+    coordinates.
     """
-    keypoints, scores = predictions.keypoints, predictions.scores
     keep = points.inside(keypoints, sizes[:, None, ::-1], border)
     m = scores.shape[-1]
     k = m if top_n is None else min(top_n, m)
@@ -73,19 +82,22 @@ def _select_points(
         )
     ranked, order = jax.lax.top_k(jnp.where(keep, scores, -jnp.inf), k)
     counts = jnp.minimum(jnp.sum(keep, axis=-1), k)
-    return (
-        points.take(keypoints, order),
-        ranked,
-        points.take(predictions.descriptors, order),
-        counts,
-    )
+    return points.take(keypoints, order), ranked, order, counts
 
 
 def _network(
-    variables: dict, images: jax.Array, *, model: UnsuperPoint, upsample: int = 1
-) -> tuple[jax.Array, Predictions]:
+    variables: dict,
+    images: jax.Array,
+    *,
+    model: UnsuperPoint,
+    upsample: int = 1,
+    sparse: bool = False,
+) -> tuple[jax.Array, Predictions, jax.Array | None, jax.Array | None]:
     """uint8 [B, H, W, 3] (H, W multiples of 8) -> (the network's input float32 [B, sH, sW, 3],
-    its Predictions in its own pixels).
+    its Predictions in its own pixels, anchors [B, M, 2], descriptor features [B, h, w, C]).
+
+    ``sparse``: the model skips its descriptors and returns the anchors and features that the
+    kept points' descriptors are computed from (``model.sparse_descriptors``); else both None.
 
     ``upsample`` s > 1 runs the network on the images enlarged s times (bilinear, pixel centres
     aligned): the cells shrink to 8 / s input pixels, and positions regressed to a roughly
@@ -97,7 +109,9 @@ def _network(
         batch, height, width, channels = pixels.shape
         shape = (batch, height * upsample, width * upsample, channels)
         pixels = jax.image.resize(pixels, shape, "linear")
-    return pixels, model.apply(variables, pixels, train=False)
+    outputs = model.clone(sparse_descriptors=sparse).apply(variables, pixels, train=False)
+    predictions, features, anchors = outputs if sparse else (outputs, None, None)
+    return pixels, predictions, anchors, features
 
 
 def _detect_padded(
@@ -106,22 +120,30 @@ def _detect_padded(
     sizes: jax.Array,
     *,
     network: Callable,
+    descriptors: Callable,
     top_n: int | None,
     nms_radius: float,
     border: float,
     upsample: int = 1,
     refiner: dict | None = None,
 ) -> tuple[jax.Array, ...]:
-    """uint8 [B, H, W, 3] (H, W multiples of 8) + sizes [B, 2] -> :func:`_select_points` output;
-    ``network`` is :func:`_network` with its model and ``upsample`` bound.
+    """uint8 [B, H, W, 3] (H, W multiples of 8) + sizes [B, 2] -> keypoints [B, K, 2], scores
+    [B, K] sorted descending, descriptors [B, K, F] and counts [B] (:func:`_select_points`);
+    ``network`` is :func:`_network` with its model and ``upsample`` bound, ``descriptors``
+    ``model.describe_points`` with its dtype.
 
     With a ``refiner`` the border test and NMS judge the refined points, and the ranking their
     scores times the certainty of their moves (``refine.patch_moves``). Without NMS only the
     strongest ``refine.refined_count`` points that the move can bring inside are refined: 501 of
-    1,200 at 240x320 / 300.
+    1,200 at 240x320 / 300. Descriptors are read where the network placed the points; only the
+    kept points' are computed when they are few (``points.describes_sparsely``).
     """
-    pixels, predictions = network(variables, images)
-    cells_h, cells_w = pixels.shape[1] // CELL, pixels.shape[2] // CELL
+    cells_h, cells_w = (side * upsample // CELL for side in images.shape[1:3])
+    sparse = points.describes_sparsely(top_n, cells_h * cells_w)
+    pixels, predictions, anchors, features = network(variables, images, sparse=sparse)
+    keypoints, scores = predictions.keypoints, predictions.scores
+    # What the kept points' descriptors come from: their anchors, or the model's descriptors.
+    carried = anchors if sparse else predictions.descriptors
     if refiner is not None:
         edges = refine_lib.edge_cells(cells_h, cells_w, border, upsample)
         count = refine_lib.refined_count(cells_h * cells_w, edges, top_n, nms_radius)
@@ -129,19 +151,31 @@ def _detect_padded(
             # The points a move of up to REACH can bring inside, strongest first.
             reach = refine_lib.REACH / upsample
             possible = points.inside(
-                points.to_input(predictions.keypoints, upsample),
-                sizes[:, None, ::-1],
-                border - reach,
+                points.to_input(keypoints, upsample), sizes[:, None, ::-1], border - reach
             )
-            _, order = jax.lax.top_k(jnp.where(possible, predictions.scores, -jnp.inf), count)
-            predictions = jax.tree.map(lambda x: points.take(x, order), predictions)
+            _, order = jax.lax.top_k(jnp.where(possible, scores, -jnp.inf), count)
+            keypoints, scores, carried = (
+                points.take(x, order) for x in (keypoints, scores, carried)
+            )
         # In the network's pixels, where the offsets were learned (inference.refine).
-        refined, factors = refine_lib.refine_keypoints(refiner, pixels, predictions.keypoints)
-        predictions = predictions._replace(keypoints=refined, scores=predictions.scores * factors)
-    predictions = predictions._replace(keypoints=points.to_input(predictions.keypoints, upsample))
-    return _select_points(
-        predictions, sizes, cells_h, cells_w, top_n, nms_radius, border, CELL / upsample
+        keypoints, factors = refine_lib.refine_keypoints(refiner, pixels, keypoints)
+        scores = scores * factors
+    keypoints, ranked, order, counts = _select_points(
+        points.to_input(keypoints, upsample),
+        scores,
+        sizes,
+        cells_h,
+        cells_w,
+        top_n,
+        nms_radius,
+        border,
+        CELL / upsample,
     )
+    carried = points.take(carried, order)
+    if sparse:
+        maps = tuple(jnp.full(order.shape, n) for n in (*features.shape[1:3], 0))
+        carried = descriptors(variables["params"], pad_descriptor_features(features), carried, maps)
+    return keypoints, ranked, carried, counts
 
 
 def unbatch(outputs) -> list[Features]:
@@ -297,8 +331,11 @@ class Detector:
         self.any_scale = bool(any_scale)
         options = dict(
             network=functools.partial(
-                _network, model=UnsuperPoint(model_config), upsample=self.upsample
+                _network,
+                model=UnsuperPoint(model_config),
+                upsample=self.upsample,
             ),
+            descriptors=functools.partial(describe_points, dtype=model_config.dtype),
             nms_radius=self.nms_radius,
             border=self.border,
             upsample=self.upsample,

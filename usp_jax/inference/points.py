@@ -11,6 +11,19 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
+#: A top-N detector computes the descriptors of its N points alone (``model.describe_points``)
+#: while N is at most this share of its candidates; for more, the whole descriptor map costs
+#: less. At 240x320 (1,200 cells) and 300 points that saved 3.8% of `paper`'s time and 4.1% of
+#: `distilled`'s (6.6% with the pyramid); for all 1,200 points `paper` was level and
+#: `distilled` 18% slower (experiments/RESULTS.md).
+SPARSE_SHARE = 0.25
+
+
+def describes_sparsely(top_n: int | None, candidates: int) -> bool:
+    """Whether a detector keeping ``top_n`` of ``candidates`` points computes their descriptors
+    alone (:data:`SPARSE_SHARE`)."""
+    return top_n is not None and top_n <= SPARSE_SHARE * candidates
+
 
 def take(values: jax.Array, order: jax.Array) -> jax.Array:
     """The rows ``order`` [B, K] of per-point values [B, M, ...] -> [B, K, ...]."""

@@ -31,7 +31,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from usp_jax.core.model import CELL
+from usp_jax.core.model import CELL, pad_descriptor_features
 from usp_jax.inference import points, refine
 from usp_jax.inference.nms import greedy_radius_nms
 
@@ -91,6 +91,7 @@ def detect_pyramid(
     images: jax.Array,
     *,
     network: Callable,
+    descriptors: Callable,
     top_n: int | None,
     nms_radius: float,
     border: float,
@@ -102,8 +103,12 @@ def detect_pyramid(
     the first counts[b] entries are points) and sizes [B, K] (``CELL / scale`` of each point's
     level).
 
-    ``network(variables, padded [B, h8, w8, 3])`` -> (its input [B, s h8, s w8, 3], Predictions
-    in its pixels) is ``detector._network`` with its model and ``upsample`` s bound. A level's
+    ``network(variables, padded [B, h8, w8, 3], sparse=...)`` -> (its input [B, s h8, s w8, 3],
+    Predictions in its pixels, descriptor anchors, descriptor features) is
+    ``detector._network`` with its model and ``upsample`` s bound, ``descriptors``
+    ``model.describe_points`` with its dtype: when few points are kept
+    (``points.describes_sparsely``) their descriptors are computed at the end, each from its own
+    level's features, in one gather over all levels. A level's
     border is ``border`` input px, its own in its pixels. With a ``refiner`` the candidates of
     all levels are cut together before the refinement, as ``detector._detect_padded`` cuts one
     level's: without NMS the strongest ``top_n`` plus every level's ``refine.edge_cells`` (the
@@ -111,19 +116,29 @@ def detect_pyramid(
     level.
     """
     batch, height, width = images.shape[:3]
-    levels, origins, edges = [], [], 0
+    sparse = points.describes_sparsely(top_n, candidates(height, width, upsample, any_scale=True))
+    levels, origins, features, edges, rows = [], [], [], 0, 0
     for index, scale in enumerate(level_scales(height, width)):
         shape = level_shape(height, width, scale)
-        pixels, predictions = network(variables, _pad_to_cells(resize_level(images, shape)))
+        pixels, predictions, anchors, level_features = network(
+            variables, _pad_to_cells(resize_level(images, shape)), sparse=sparse
+        )
         cells_h, cells_w = pixels.shape[1] // CELL, pixels.shape[2] // CELL
         factors = (width / shape[1], height / shape[0])  # (x, y)
         margin = border / max(factors)
-        levels.append((pixels, predictions))
-        origins.append(_Origin.of_level(index, scale, shape, margin, factors, cells_h * cells_w))
+        levels.append((pixels, predictions, anchors if sparse else predictions.descriptors))
+        if sparse:
+            features.append(pad_descriptor_features(level_features))
+        origins.append(
+            _Origin.of_level(
+                index, scale, shape, margin, factors, (cells_h, cells_w, rows), cells_h * cells_w
+            )
+        )
         edges += refine.edge_cells(cells_h, cells_w, margin, upsample)
-    keypoints, scores, descriptors = (
-        jnp.concatenate([getattr(p, name) for _, p in levels], axis=1)
-        for name in ("keypoints", "scores", "descriptors")
+        rows += (cells_h + 3) * (cells_w + 3)
+    # What the kept points' descriptors come from: their anchors, or the model's descriptors.
+    keypoints, scores, carried = (
+        jnp.concatenate(x, axis=1) for x in zip(*((p.keypoints, p.scores, a) for _, p, a in levels))
     )
     m = scores.shape[1]
     origin = jax.tree.map(
@@ -139,10 +154,10 @@ def detect_pyramid(
         if count < m:
             possible = inside(keypoints, origin, refine.REACH / upsample)
             _, order = jax.lax.top_k(jnp.where(possible, scores, -jnp.inf), count)
-            keypoints, scores, descriptors, origin = jax.tree.map(
-                lambda x: points.take(x, order), (keypoints, scores, descriptors, origin)
+            keypoints, scores, carried, origin = jax.tree.map(
+                lambda x: points.take(x, order), (keypoints, scores, carried, origin)
             )
-        level_pixels = [pixels for pixels, _ in levels]
+        level_pixels = [pixels for pixels, _, _ in levels]
         moves, factors = _level_moves(refiner, level_pixels, keypoints, origin.level)
         keypoints, scores = keypoints + moves, scores * factors
     keep = inside(keypoints, origin)
@@ -157,26 +172,33 @@ def detect_pyramid(
         )
     ranked, order = jax.lax.top_k(jnp.where(keep, scores, -jnp.inf), k)
     counts = jnp.minimum(jnp.sum(keep, axis=-1), k)
-    keypoints, descriptors, sizes = (
-        points.take(x, order) for x in (keypoints, descriptors, origin.size)
+    keypoints, carried, sizes, maps = (
+        points.take(x, order) for x in (keypoints, carried, origin.size, origin.features)
     )
-    return keypoints, ranked, descriptors, counts, sizes
+    if sparse:
+        padded = jnp.concatenate(features, axis=1)
+        maps = tuple(jnp.moveaxis(maps, -1, 0))
+        carried = descriptors(variables["params"], padded, carried, maps)
+    return keypoints, ranked, carried, counts, sizes
 
 
 class _Origin(NamedTuple):
     """Where each of M candidates comes from, per point (static, float32): its level's index
     [M], (width, height) [M, 2], border in its pixels [M], (x, y) factors to the input's
-    pixels [M, 2] and cell side in input pixels (``Features.scales``) [M]."""
+    pixels [M, 2], cell side in input pixels (``Features.scales``) [M] and its level's
+    descriptor features [M, 3]: their height and width in cells and first row in the levels'
+    padded features, one after another (``model.describe_points``)."""
 
     level: np.ndarray
     extent: np.ndarray
     margin: np.ndarray
     factors: np.ndarray
     size: np.ndarray
+    features: np.ndarray
 
     @classmethod
-    def of_level(cls, index, scale, shape, margin, factors, count) -> _Origin:
-        values = (index, shape[::-1], margin, factors, CELL / scale)
+    def of_level(cls, index, scale, shape, margin, factors, features, count) -> _Origin:
+        values = (index, shape[::-1], margin, factors, CELL / scale, features)
         return cls(*(np.full((count, *np.shape(v)), v, np.float32) for v in values))
 
 
