@@ -104,10 +104,10 @@ def main() -> None:
         parser.error("--versus-baselines and --pool compare the --against model: give --against")
     if args.pool and not args.versus_baselines:
         parser.error("--pool pools draws for --versus-baselines: give --versus-baselines")
-    draws = 1 + len(args.pool)
-    if args.zoom and len(args.zoom) > 1 and (not args.versus_baselines or len(args.zoom) != draws):
+    count = 1 + len(args.pool)
+    if args.zoom and len(args.zoom) > 1 and (not args.versus_baselines or len(args.zoom) != count):
         parser.error(
-            f"--zoom takes one folder, or with --versus-baselines one per draw ({draws}),"
+            f"--zoom takes one folder, or with --versus-baselines one per draw ({count}),"
             f" got {len(args.zoom)}"
         )
     files = [args.results, *([args.against] if args.against else []), *sum(args.pool, [])]
@@ -193,10 +193,8 @@ def versus_baselines(
     ``keep(draw index, row)`` accepts (a zoom bin's, say)."""
     model, others = [], []
     for index, (rows, new_rows) in enumerate(draws):
-        new_rows = [r for r in new_rows if r["split"] != "v" or keep(index, r)]
-        rows = [r for r in rows if r["split"] != "v" or keep(index, r)]
-        model += _viewpoint_rows(new_rows, index, lambda method: method == MODEL)
-        others += _viewpoint_rows(rows, index, lambda method: method != MODEL)
+        model += _viewpoint_rows(new_rows, index, lambda r: r["method"] == MODEL and keep(index, r))
+        others += _viewpoint_rows(rows, index, lambda r: r["method"] != MODEL and keep(index, r))
     shown = ("ha1", "ha3", "ha5", "ms")
     lines = [
         f"{MODEL} of the --against file(s) minus each method, {len(model)} viewpoint pairs"
@@ -218,13 +216,9 @@ def versus_baselines(
 
 
 def _viewpoint_rows(rows: list[dict], draw: int, keep) -> list[dict]:
-    """The viewpoint rows of the methods ``keep(method)`` accepts, scenes prefixed by the draw:
-    scene names repeat across draws of the same photos, and the draw keeps the pairs apart."""
-    return [
-        {**r, "scene": f"{draw}/{r['scene']}"}
-        for r in rows
-        if r["split"] == "v" and keep(r["method"])
-    ]
+    """The viewpoint rows that ``keep(row)`` accepts, scenes prefixed by the draw: scene names
+    repeat across draws of the same photos, and the draw keeps the pairs apart."""
+    return [{**r, "scene": f"{draw}/{r['scene']}"} for r in rows if r["split"] == "v" and keep(r)]
 
 
 def labelled(rows: list[dict], label: str) -> list[dict]:

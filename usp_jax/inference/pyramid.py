@@ -108,12 +108,11 @@ def detect_pyramid(
     ``detector._network`` with its model and ``upsample`` s bound, ``descriptors``
     ``model.describe_points`` with its dtype: when few points are kept
     (``points.describes_sparsely``) their descriptors are computed at the end, each from its own
-    level's features, in one gather over all levels. A level's
-    border is ``border`` input px, its own in its pixels. With a ``refiner`` the candidates of
-    all levels are cut together before the refinement, as ``detector._detect_padded`` cuts one
-    level's: without NMS the strongest ``top_n`` plus every level's ``refine.edge_cells`` (the
-    moved, re-scored points of all levels compete for one top N), each point read from its own
-    level.
+    level's features, in one gather over all levels. A level's border is ``border`` input px,
+    its own in its pixels. With a ``refiner`` the candidates of all levels are cut together
+    before the refinement, as ``detector._detect_padded`` cuts one level's: without NMS the
+    strongest ``top_n`` plus every level's ``refine.edge_cells`` (the moved, re-scored points of
+    all levels compete for one top N), each point read from its own level.
     """
     batch, height, width = images.shape[:3]
     sparse = points.describes_sparsely(top_n, candidates(height, width, upsample, any_scale=True))
@@ -127,15 +126,22 @@ def detect_pyramid(
         factors = (width / shape[1], height / shape[0])  # (x, y)
         margin = border / max(factors)
         levels.append((pixels, predictions, anchors if sparse else predictions.descriptors))
+        first_row = rows
         if sparse:
             features.append(pad_descriptor_features(level_features))
+            rows += features[-1].shape[1]
         origins.append(
             _Origin.of_level(
-                index, scale, shape, margin, factors, (cells_h, cells_w, rows), cells_h * cells_w
+                index,
+                scale,
+                shape,
+                margin,
+                factors,
+                (cells_h, cells_w, first_row),
+                cells_h * cells_w,
             )
         )
         edges += refine.edge_cells(cells_h, cells_w, margin, upsample)
-        rows += (cells_h + 3) * (cells_w + 3)
     # What the kept points' descriptors come from: their anchors, or the model's descriptors.
     keypoints, scores, carried = (
         jnp.concatenate(x, axis=1) for x in zip(*((p.keypoints, p.scores, a) for _, p, a in levels))

@@ -7,8 +7,9 @@ less distinctively. Together they do better than either: the rotation-invariant 
 and the upright network matches the pair (experiments/RESULTS.md, "Any rotation": on rotated
 viewpoint pairs MS 0.246 -> 0.517 and HA@3 0.31 -> 0.800, 0.530 and 0.850 with today's refined
 points, and with ``upsample=2`` an MS above ORB's, AKAZE's, BRISK's and SIFT's at every angle,
-at the cost of two guide detections and one detection on a larger canvas). Where the guide cannot read the angle (repetitive patterns,
-little texture) the upright network searches for it (:func:`search_turn`).
+at the cost of two guide detections and one detection on a larger canvas). Where the guide
+cannot read the angle (repetitive patterns, little texture) the upright network searches for it
+(:func:`search_turn`).
 
 Angles are degrees, positive = counter-clockwise on screen (``cv2.getRotationMatrix2D``'s
 sense); :func:`in_plane_rotation` reads the opposite, clockwise, sense from a homography, so
