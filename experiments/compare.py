@@ -61,7 +61,8 @@ from usp_jax.evaluation.statistics import (
 )
 
 
-def main() -> None:
+def _parser() -> argparse.ArgumentParser:
+    """The command line (module docstring)."""
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("results", help="JSON from usp-jax evaluate --json")
     parser.add_argument("--against", help="a second evaluation of the same pairs (a new model)")
@@ -99,6 +100,11 @@ def main() -> None:
         help="with --versus-baselines: one more draw of pairs, pooled with the first",
     )
     parser.add_argument("--rounds", type=int, default=2000, help="bootstrap resamples")
+    return parser
+
+
+def main() -> None:
+    parser = _parser()
     args = parser.parse_args()
     if (args.versus_baselines or args.pool) and not args.against:
         parser.error("--versus-baselines and --pool compare the --against model: give --against")
@@ -162,18 +168,9 @@ def main() -> None:
         print("\n" + table)
         if args.zoom and len(args.zoom) == len(draws):
             try:
-                bins = [zoom_bins(new, pairs) for (_, new), pairs in zip(draws, args.zoom)]
+                print(versus_baselines_by_zoom(draws, args.zoom, args.rounds))
             except (OSError, ValueError) as error:
                 parser.error(f"--zoom: {error}")
-            for index in sorted(set().union(*(b.values() for b in bins))):
-                print(
-                    f"\nzoom {zoom_bin_label(index)}: "
-                    + versus_baselines(
-                        draws,
-                        args.rounds,
-                        keep=lambda draw, r: bins[draw][r["scene"], r["k"]] == index,
-                    )
-                )
 
 
 def read_evaluation(path: str) -> tuple[list[dict], int]:
@@ -213,6 +210,21 @@ def versus_baselines(
         ]
         lines.append(f"| {name} | " + " | ".join(cells) + " |")
     return "\n".join(lines)
+
+
+def versus_baselines_by_zoom(
+    draws: list[tuple[list[dict], list[dict]]], folders: list[str], rounds: int
+) -> str:
+    """:func:`versus_baselines` once per zoom bin, over the bin's pairs of all draws, each
+    draw's zooms read from its evaluated folder (``analysis.zoom_bins``)."""
+    bins = [zoom_bins(new_rows, pairs) for (_, new_rows), pairs in zip(draws, folders)]
+    tables = []
+    for index in sorted(set().union(*(b.values() for b in bins))):
+        table = versus_baselines(
+            draws, rounds, keep=lambda draw, r: bins[draw][r["scene"], r["k"]] == index
+        )
+        tables.append(f"\nzoom {zoom_bin_label(index)}: {table}")
+    return "\n".join(tables)
 
 
 def _viewpoint_rows(rows: list[dict], draw: int, keep) -> list[dict]:

@@ -116,32 +116,9 @@ def detect_pyramid(
     """
     batch, height, width = images.shape[:3]
     sparse = points.describes_sparsely(top_n, candidates(height, width, upsample, any_scale=True))
-    levels, origins, features, edges, rows = [], [], [], 0, 0
-    for index, scale in enumerate(level_scales(height, width)):
-        shape = level_shape(height, width, scale)
-        pixels, predictions, anchors, level_features = network(
-            variables, _pad_to_cells(resize_level(images, shape)), sparse=sparse
-        )
-        cells_h, cells_w = pixels.shape[1] // CELL, pixels.shape[2] // CELL
-        factors = (width / shape[1], height / shape[0])  # (x, y)
-        margin = border / max(factors)
-        levels.append((pixels, predictions, anchors if sparse else predictions.descriptors))
-        first_row = rows
-        if sparse:
-            features.append(pad_descriptor_features(level_features))
-            rows += features[-1].shape[1]
-        origins.append(
-            _Origin.of_level(
-                index,
-                scale,
-                shape,
-                margin,
-                factors,
-                (cells_h, cells_w, first_row),
-                cells_h * cells_w,
-            )
-        )
-        edges += refine.edge_cells(cells_h, cells_w, margin, upsample)
+    levels, origins, features, edges = _run_levels(
+        variables, images, network, border=border, upsample=upsample, sparse=sparse
+    )
     # What the kept points' descriptors come from: their anchors, or the model's descriptors.
     keypoints, scores, carried = (
         jnp.concatenate(x, axis=1) for x in zip(*((p.keypoints, p.scores, a) for _, p, a in levels))
@@ -186,6 +163,50 @@ def detect_pyramid(
         maps = tuple(jnp.moveaxis(maps, -1, 0))
         carried = descriptors(variables["params"], padded, carried, maps)
     return keypoints, ranked, carried, counts, sizes
+
+
+def _run_levels(
+    variables: dict,
+    images: jax.Array,
+    network: Callable,
+    *,
+    border: float,
+    upsample: int,
+    sparse: bool,
+) -> tuple[list, list, list, int]:
+    """The network on every level of uint8 [B, H, W, 3] images (:func:`detect_pyramid`'s
+    ``network``): per level (its network pixels, Predictions, its descriptors' source: anchors
+    when ``sparse``, else the descriptors) and its candidates' :class:`_Origin`; the levels'
+    padded descriptor features when ``sparse``; and how many edge cells all levels hold
+    (``refine.edge_cells``)."""
+    height, width = images.shape[1:3]
+    levels, origins, features, edges, rows = [], [], [], 0, 0
+    for index, scale in enumerate(level_scales(height, width)):
+        shape = level_shape(height, width, scale)
+        pixels, predictions, anchors, level_features = network(
+            variables, _pad_to_cells(resize_level(images, shape)), sparse=sparse
+        )
+        cells_h, cells_w = pixels.shape[1] // CELL, pixels.shape[2] // CELL
+        factors = (width / shape[1], height / shape[0])  # (x, y)
+        margin = border / max(factors)
+        levels.append((pixels, predictions, anchors if sparse else predictions.descriptors))
+        first_row = rows
+        if sparse:
+            features.append(pad_descriptor_features(level_features))
+            rows += features[-1].shape[1]
+        origins.append(
+            _Origin.of_level(
+                index,
+                scale,
+                shape,
+                margin,
+                factors,
+                (cells_h, cells_w, first_row),
+                cells_h * cells_w,
+            )
+        )
+        edges += refine.edge_cells(cells_h, cells_w, margin, upsample)
+    return levels, origins, features, edges
 
 
 class _Origin(NamedTuple):
