@@ -38,6 +38,7 @@ from tqdm import tqdm
 from usp_jax.evaluation import pose, scenes
 from usp_jax.evaluation.baselines import baseline_method
 from usp_jax.inference.detector import Detector
+from usp_jax.inference.tracking import VIDEO_SIDE, VIDEO_WEIGHTS
 from usp_jax.inference.weights import pretrained_path
 
 #: The candidates for ``track``'s default and the package default (``paper``, refined), each
@@ -131,6 +132,30 @@ def plot(table: dict, path: str, title: str, reference: str = "SIFT") -> None:
     figure.savefig(path, dpi=100)
 
 
+def budget(rows: list[dict], table: dict, reference: str = "SIFT") -> str:
+    """Lines for the methods no slower than ``reference``: AUC@10 and its paired difference to
+    the reference's and to ``track``'s default (``VIDEO_WEIGHTS`` at ``VIDEO_SIDE``), fastest
+    first: what the choice of ``track``'s default rests on."""
+    if reference not in table:
+        return f"no {reference} row: no time budget"
+    current = candidate(f"{VIDEO_WEIGHTS}:{VIDEO_SIDE}", 0)[0].split(" top ")[0]
+    limit = table[reference]["ms"]
+    lines = [
+        f"within {reference}'s {limit:.0f} ms per image (AUC@10, minus {reference}'s, minus"
+        f" {current}'s; 95% paired intervals):"
+    ]
+    for name, row in sorted(table.items(), key=lambda item: item[1]["ms"]):
+        if row["ms"] > limit or name == reference:
+            continue
+        cells = [f"{name}: {row['auc'][10.0][0]:.3f} at {row['ms']:.0f} ms"]
+        for other in (reference, current):
+            if other in table and other != name:
+                gap, (low, high) = pose.auc_difference(rows, name, other)
+                cells.append(f"{gap:+.3f} ({low:+.3f} to {high:+.3f})")
+        lines.append("  " + ", ".join(cells))
+    return "\n".join(lines)
+
+
 def parse_args() -> tuple[argparse.Namespace, list[tuple[str, dict]]]:
     """The command line; bad networks, sizes or pair folders are one line (exit 2) before any
     compiling."""
@@ -138,6 +163,7 @@ def parse_args() -> tuple[argparse.Namespace, list[tuple[str, dict]]]:
     source = parser.add_mutually_exclusive_group(required=True)
     source.add_argument("--photos", help="a folder of photos to texture rooms with")
     source.add_argument("--pairs", help="a folder of pose pairs (pose.read_pairs' layout)")
+    source.add_argument("--summarize", help="only print the table and budget of an earlier --json")
     parser.add_argument("--rooms", type=int, default=3, help="rooms (default %(default)s)")
     parser.add_argument("--per-room", type=int, default=10, help="pairs per room (default 10)")
     parser.add_argument("--seed", type=int, default=0, help="rooms and views (default 0)")
@@ -167,6 +193,12 @@ def parse_args() -> tuple[argparse.Namespace, list[tuple[str, dict]]]:
 
 def main() -> None:
     args, networks = parse_args()
+    if args.summarize:
+        with open(args.summarize) as f:
+            rows = json.load(f)["rows"]
+        table = pose.summarize(rows, rounds=args.rounds)
+        print(pose.format_table(table) + "\n" + budget(rows, table))
+        return
     try:
         if args.pairs:
             pairs = pose.read_pairs(args.pairs)
@@ -184,7 +216,7 @@ def main() -> None:
         method.detect(pairs[0].image1)
     rows = pose.evaluate_pose(pairs, methods, progress=lambda p: tqdm(p, desc="pose pairs"))
     table = pose.summarize(rows, rounds=args.rounds)
-    print(pose.format_table(table))
+    print(pose.format_table(table) + "\n" + budget(rows, table))
     print(f"load average after: {os.getloadavg()[0]:.1f}")
     source = args.pairs or f"{args.photos}, {args.rooms} rooms x {args.per_room}, seed {args.seed}"
     if args.json:

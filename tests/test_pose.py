@@ -86,6 +86,8 @@ def test_summary_ranks_an_exact_method_above_a_noisy_one_with_intervals():
     assert exact[0] > 0.99 and exact[1][0] > 0.99
     assert noisy[0] < exact[0] and noisy[1][0] <= noisy[0] <= noisy[1][1]
     assert "| exact |" in pose.format_table(table)
+    difference, (low, high) = pose.auc_difference(rows, "exact", "noisy", rounds=200, threshold=5)
+    assert difference == pytest.approx(exact[0] - noisy[0]) and 0 < low <= difference <= high
 
 
 @pytest.mark.parametrize(

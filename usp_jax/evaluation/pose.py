@@ -251,6 +251,29 @@ def summarize(
     return table
 
 
+def auc_difference(
+    rows: list[dict], first: str, second: str, rounds: int = 2000, seed: int = 0, threshold=10.0
+) -> tuple[float, tuple[float, float]]:
+    """AUC at ``threshold`` of method ``first`` minus ``second``'s, with the 95% interval of a
+    paired bootstrap over the pairs (each draw resamples both methods' same pairs)."""
+    errors = {}
+    for name in (first, second):
+        found = sorted((r["pair"], r["error"]) for r in rows if r["method"] == name)
+        errors[name] = np.array([e for _, e in found])
+    if len(errors[first]) != len(errors[second]) or not len(errors[first]):
+        raise ValueError(f"{first!r} and {second!r} were not scored on the same pairs")
+    draws = np.random.default_rng(seed).integers(
+        0, len(errors[first]), (rounds, len(errors[first]))
+    )
+    gap = [
+        pose_auc(errors[first][d], [threshold])[0] - pose_auc(errors[second][d], [threshold])[0]
+        for d in draws
+    ]
+    low, high = np.percentile(gap, [2.5, 97.5])
+    difference = pose_auc(errors[first], [threshold])[0] - pose_auc(errors[second], [threshold])[0]
+    return difference, (float(low), float(high))
+
+
 def format_table(table: dict[str, dict]) -> str:
     """A Markdown table of :func:`summarize`'s: AUC with its 95% interval per threshold."""
     thresholds = list(next(iter(table.values()))["auc"])
