@@ -46,7 +46,7 @@ from usp_jax.inference.weights import pretrained_path
 NETWORKS = (
     "paper",
     "paper:480",
-    "distilled",
+    "distilled:640",  # track's default (tracking.VIDEO_SIDE): a 480x640 image as it is
     "distilled+refine",
     "distilled:480",
     "distilled:480+refine",

@@ -280,7 +280,7 @@ def parse_args() -> tuple[argparse.Namespace, list[tuple]]:
     parser.add_argument(
         "--networks",
         nargs="+",
-        default=["distilled:480-refine", "paper-refine"],
+        default=["distilled:640-refine", "paper-refine"],
         help="shipped weights by name (default: %(default)s, what `usp-jax track` runs by default"
         " and with --weights paper --network-side 0); NAME:SIDE detects on frames shrunk to"
         " SIDE px on their longer side (keypoints in the frame's pixels, matched as the others);"

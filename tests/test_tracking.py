@@ -239,7 +239,7 @@ def test_cli_progress_bar_names_the_source_and_method(frames, tmp_path, capsys):
         (["--weights", "paper", "--network-side", "0"], ("paper", 0, False)),
     ],
 )
-def test_cli_network_defaults_to_the_distilled_weights_at_480_px(
+def test_cli_network_defaults_to_the_distilled_weights_at_640_px(
     frames, tmp_path, monkeypatch, options, expected
 ):
     """``track``'s own default is the real-time one (``tracking.default_detector``), not the

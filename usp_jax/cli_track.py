@@ -14,8 +14,9 @@ network matches; turning every frame back would add two detections per frame for
 camera that rolls fast is better served by ``--weights rotation``.
 
 The network's defaults are the video ones (``tracking.default_detector``): ``--weights
-distilled``, detecting on a copy of each frame at most ``--network-side 480`` px long, because
-the package default, ``paper`` at full size, takes ~6x SIFT's time per frame. The sub-pixel
+distilled``, detecting on a copy of each frame at most ``--network-side 640`` px long (the most
+accurate relative poses at SIFT's time per frame, ``tracking.VIDEO_SIDE``), because the package
+default, ``paper`` at full size, takes ~6x SIFT's time per frame. The sub-pixel
 refinement stays off, whatever the weights: on footage it adds time and no inliers.
 """
 

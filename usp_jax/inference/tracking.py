@@ -41,13 +41,15 @@ from usp_jax.inference.matching import (
 #: and the radius that spreads points for a better-conditioned estimate (RESULTS.md).
 TOP_N = 1000
 NMS_RADIUS = 4.0
-#: The video default: the distilled fast network on a copy of each frame at most 480 px long
-#: (points in the frame's pixels). On real footage (box.mp4, 640x480) it keeps the default
-#: ``paper`` weights' inliers at every frame gap at about 0.2x their time, below SIFT's (RESULTS.md,
-#: "Video tracking"); ``paper`` at full size takes ~6x SIFT's time, too slow for a live camera.
-#: Without the sub-pixel refinement: on video it adds time and no inliers (RESULTS.md).
+#: The video default: the distilled fast network on a copy of each frame at most 640 px long
+#: (points in the frame's pixels; a 640x480 frame as it is), chosen by relative pose accuracy at
+#: SIFT's time budget on rendered rooms (benchmarks/bench_pose.py, RESULTS.md "Pose accuracy"):
+#: on 72 design pairs its AUC@10 is 0.108 above the same network at 480 px (95% interval +0.014
+#: to +0.192) at 0.87-0.97x SIFT's time per image; SIFT's AUC stays above it. ``paper`` at full
+#: size takes ~6x SIFT's time, too slow for a live camera. Without the sub-pixel refinement: on
+#: video it adds time and no inliers, and on the rooms it takes the network past SIFT's time.
 VIDEO_WEIGHTS = "distilled"
-VIDEO_SIDE = 480
+VIDEO_SIDE = 640
 #: RANSAC confidence of the fundamental matrix (OpenCV's default, 0.99, stops too early for
 #: hundreds of matches with many outliers).
 CONFIDENCE = 0.999
