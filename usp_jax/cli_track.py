@@ -216,6 +216,18 @@ def summary(results: list[tracking.TrackedFrame]) -> dict:
     }
 
 
+def _print_summary(args, numbers: dict, width: int, height: int) -> None:
+    """The run's one line of numbers (:func:`summary`'s)."""
+    print(
+        f"{args.source}: {numbers['frames']} frames tracked with {args.method} at"
+        f" {width}x{height}; {numbers['mean_inliers']:.0f} inliers per frame to the previous"
+        f" ({'homography' if args.planar else 'fundamental matrix'}),"
+        f" {numbers['keyframes']} keyframes, {numbers['tracks']} tracks seen twice or more"
+        f" (median {numbers['median_track_length']:g} frames),"
+        f" {numbers['ms_per_frame']:.0f} ms per frame ({numbers['frames_per_s']:.1f} frames/s)"
+    )
+
+
 def _warn_if_static(numbers: dict, planar: bool) -> None:
     """One line on stderr when the camera did not move: every still point then fits a
     fundamental matrix, so its inliers count still points, not verified matches."""
@@ -283,14 +295,7 @@ def run(args, load_detector) -> int:
             )
         numbers = summary(results)
     height, width = current["frame"].shape[:2]
-    print(
-        f"{args.source}: {numbers['frames']} frames tracked with {args.method} at"
-        f" {width}x{height}; {numbers['mean_inliers']:.0f} inliers per frame to the previous"
-        f" ({'homography' if args.planar else 'fundamental matrix'}),"
-        f" {numbers['keyframes']} keyframes, {numbers['tracks']} tracks seen twice or more"
-        f" (median {numbers['median_track_length']:g} frames),"
-        f" {numbers['ms_per_frame']:.0f} ms per frame ({numbers['frames_per_s']:.1f} frames/s)"
-    )
+    _print_summary(args, numbers, width, height)
     _warn_if_static(numbers, args.planar)
     if args.out:
         print(f"wrote {args.out}")
