@@ -160,11 +160,18 @@ def cmd_evaluate(args) -> None:
 
     _check_output_file(args.json, "--json")
     _check_output_folder(args.plots, "--plots")
+    if args.real and (args.res is not None or args.plots):
+        raise ValueError(
+            "--real scores every pair at its own size and draws no plots: drop --res and --plots"
+        )
+    args.top = args.top or (1000 if args.real else 300)
     detector = None if args.baselines_only else _load_detector(args)
-    height, width = args.res
     baselines = [name.strip() for name in args.baselines.split(",") if name.strip()]
     guide = _guide(args) if detector is not None else _guide(args, checked_only=True)
     methods = protocol.methods(detector, baselines, args.top, guide)
+    if args.real:
+        return _evaluate_real(args, methods)
+    height, width = args.res = args.res or (240, 320)
     results = protocol.evaluate(
         methods,
         args.hpatches,
@@ -190,6 +197,28 @@ def cmd_evaluate(args) -> None:
         keypoints = path.with_name(path.name.removesuffix("_matches.png") + "_keypoints.png")
         print(f"wrote {keypoints}")
         print(f"wrote {path}")
+
+
+def _evaluate_real(args, methods) -> None:
+    from usp_jax.cli_track import _write_text  # through a temporary name: never half-written
+    from usp_jax.evaluation import real_pairs
+
+    if not methods:
+        raise ValueError("nothing to evaluate: --baselines-only with no --baselines")
+    rows = real_pairs.evaluate_real(
+        methods,
+        args.real,
+        top=args.top,
+        nms=args.nms,
+        ransac_orders=args.ransac_orders,
+        progress=not args.no_progress,
+    )
+    print(f"{args.real}: real pairs at native size, top {args.top} points, NMS {args.nms}")
+    print(real_pairs.format_real_table(rows))
+    if args.json:
+        config = {"top": args.top, "nms": args.nms, "ransac_orders": args.ransac_orders}
+        _write_text(args.json, json.dumps(real_pairs.real_to_json(rows, config), indent=1))
+        print(f"wrote {args.json}")
 
 
 def cmd_make_pairs(args) -> None:
