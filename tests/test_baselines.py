@@ -6,7 +6,7 @@ import pytest
 import skimage.data
 from conftest import gaussian_blob
 
-from usp_jax.evaluation.baselines import available_baselines, opencv_method
+from usp_jax.inference.methods import available_baselines, opencv_method
 
 # name -> (descriptor norm, dtype, length)
 EXPECTED = {
