@@ -240,7 +240,7 @@ def test_resize_pair_adapts_homography_per_image():
 def test_resize_pairs_homography_is_a_quarter_pixel_off_cv2_resize_at_half_size():
     # The protocol (KP2D) scales about pixel (0, 0); cv2.resize about the corner (-0.5, -0.5). At
     # half size a point lands 0.25 px up and left of where H' puts it, in both images: on rotated
-    # pairs that no longer cancels (RESULTS, "Any rotation").
+    # pairs that no longer cancels (experiments/notes/choices.md, "Resizing and turned pairs").
     centre = np.array([301.0, 203.0])
     image = gaussian_blob(centre, (480, 640), sigma=6.0)
     small, _, _ = ev.resize_pair(image, image, np.eye(3), 240, 320)
