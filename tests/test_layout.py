@@ -98,3 +98,18 @@ def test_no_modules_import_each_other_in_a_circle():
     except graphlib.CycleError as err:
         circle = err.args[1]
     assert circle == []
+
+
+# Functions allowed past the limit until they are split (remove an entry once it is).
+LONG_FUNCTIONS_BEING_SPLIT = {"evaluation/pairs.py:make_pairs"}
+
+
+def test_no_library_function_is_over_80_lines():
+    long = {
+        f"{path.relative_to(PACKAGE)}:{node.name}": node.end_lineno - node.lineno + 1
+        for path in PACKAGE.rglob("*.py")
+        for node in ast.walk(ast.parse(path.read_text()))
+        if isinstance(node, ast.FunctionDef | ast.AsyncFunctionDef)
+        and node.end_lineno - node.lineno + 1 > 80
+    }
+    assert set(long) <= LONG_FUNCTIONS_BEING_SPLIT, long
