@@ -81,7 +81,7 @@ def test_the_shipped_refinement_follows_a_sub_pixel_shift_the_raw_start_misses()
     assert np.linalg.norm(shift) == pytest.approx(0.5)  # the raw starts' error
     assert np.abs(found[1] - found[0] - shift).max() < 0.25  # shipped: 0.21 (first one: 0.14)
     # Every start, one spot: within 0.30 px of it (the first, shallower network: 0.16; the
-    # deeper one places real photos' points 5% better, RESULTS).
+    # deeper one places real photos' points 5% better, experiments/notes/choices.md).
     assert np.abs(found[0] - found[0].mean(axis=0)).max() < 0.35
 
 

@@ -17,7 +17,7 @@ RANSAC_THRESHOLD = 3.0
 RANSAC_MAX_ITERS = 5000
 #: Fewest RANSAC inliers of a homography that means something. Four always fit one exactly,
 #: and images of different scenes (or a blank one) reach a few more by chance; on the design
-#: pairs (experiments/RESULTS.md, "Reliable homographies") such chance fits stayed under this,
+#: pairs (experiments/notes/choices.md, "MIN_INLIERS") such chance fits stayed under this,
 #: true pairs far above it.
 MIN_INLIERS = 15
 

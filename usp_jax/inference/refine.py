@@ -20,7 +20,7 @@ The move also says how sure it is: the spread of the softmax over the window,
 many do (an edge, a blob). A refined point's score is the network's times ``exp(-w v)`` (``w`` =
 ``SPREAD_WEIGHT``), so that of two equally scored points the better localised is kept: on the
 design pairs (training photos) that lowered LE by 0.06 px and raised HA@1 by 0.05
-(experiments/RESULTS.md).
+(experiments/notes/choices.md).
 
 Training is label-free (``experiments/refine_offsets.py``): for a point p_A of image A and the
 point p_B the frozen detector finds at its correspondent in B = H(A), minimise the paper's
@@ -211,7 +211,7 @@ def refined_count(candidates: int, edges: int, top_n: int | None, nms_radius: fl
     a move decides); all of them where NMS (which sees the moved points) or no top-N cut needs
     them. With scores that the moves leave alone (``SPREAD_WEIGHT`` 0) the output equals
     refining all of them; with the spread, the N kept are the best re-scored of those, which on
-    the design pairs placed points as well as refining all (experiments/RESULTS.md)."""
+    the design pairs placed points as well as refining all (experiments/notes/choices.md)."""
     if top_n is None or nms_radius > 0:
         return candidates
     return min(candidates, top_n + edges)
