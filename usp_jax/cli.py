@@ -170,7 +170,9 @@ def cmd_evaluate(args) -> None:
     guide = _guide(args) if detector is not None else _guide(args, checked_only=True)
     methods = protocol.methods(detector, baselines, args.top, guide)
     if args.real:
-        return _evaluate_real(args, methods)
+        from usp_jax import cli_real
+
+        return cli_real.run(args, methods)
     height, width = args.res = args.res or (240, 320)
     results = protocol.evaluate(
         methods,
@@ -197,28 +199,6 @@ def cmd_evaluate(args) -> None:
         keypoints = path.with_name(path.name.removesuffix("_matches.png") + "_keypoints.png")
         print(f"wrote {keypoints}")
         print(f"wrote {path}")
-
-
-def _evaluate_real(args, methods) -> None:
-    from usp_jax.cli_track import _write_text  # through a temporary name: never half-written
-    from usp_jax.evaluation import real_pairs
-
-    if not methods:
-        raise ValueError("nothing to evaluate: --baselines-only with no --baselines")
-    rows = real_pairs.evaluate_real(
-        methods,
-        args.real,
-        top=args.top,
-        nms=args.nms,
-        ransac_orders=args.ransac_orders,
-        progress=not args.no_progress,
-    )
-    print(f"{args.real}: real pairs at native size, top {args.top} points, NMS {args.nms}")
-    print(real_pairs.format_real_table(rows))
-    if args.json:
-        config = {"top": args.top, "nms": args.nms, "ransac_orders": args.ransac_orders}
-        _write_text(args.json, json.dumps(real_pairs.real_to_json(rows, config), indent=1))
-        print(f"wrote {args.json}")
 
 
 def cmd_make_pairs(args) -> None:
