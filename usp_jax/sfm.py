@@ -60,8 +60,8 @@ def image_pairs(count: int, window: int | None = None) -> np.ndarray:
 
 
 def check_sizes(names: Sequence[str], sizes: Sequence[tuple[int, int]]) -> tuple[int, int]:
-    """The one (height, width) of all images; ValueError when there are fewer than two images,
-    or when sizes differ: all images share one COLMAP camera (one size, one focal length)."""
+    """The one (height, width) of all images; ValueError when there are fewer than two, or when
+    sizes differ: all images share one COLMAP camera (one size, one focal length)."""
     if len(names) < 2:
         raise ValueError(f"structure from motion needs two images or more, got {len(names)}")
     first = tuple(sizes[0])
@@ -126,19 +126,29 @@ def write_database(
 def verify(database: str | pathlib.Path) -> None:
     """COLMAP's geometric verification of every matched pair (RANSAC E, F or H; the inliers
     become the database's two-view geometries, which the mapper uses)."""
-    pycolmap = load_pycolmap()
-    pycolmap.geometric_verification(str(database))
+    load_pycolmap().geometric_verification(str(database))
+
+
+def verified_pairs(database: str | pathlib.Path) -> int:
+    """How many image pairs passed the geometric verification."""
+    with load_pycolmap().Database.open(str(database)) as db:
+        return int(db.num_verified_image_pairs())
 
 
 def map_images(
-    database: str | pathlib.Path, image_dir: str | pathlib.Path, sparse_dir: str | pathlib.Path
+    database: str | pathlib.Path,
+    image_dir: str | pathlib.Path,
+    sparse_dir: str | pathlib.Path,
+    on_image: Callable[[], object] | None = None,
 ) -> list:
     """COLMAP's incremental mapper: the models it finds, largest first, written as COLMAP
     writes them (``sparse_dir/0``, ``sparse_dir/1``, ...; none when no pair could start one).
-    ``image_dir`` gives the points' colours."""
+    ``image_dir`` gives the points' colours; ``on_image`` is called at each image registered."""
     pycolmap = load_pycolmap()
     pathlib.Path(sparse_dir).mkdir(parents=True, exist_ok=True)
-    models = pycolmap.incremental_mapping(str(database), str(image_dir), str(sparse_dir))
+    models = pycolmap.incremental_mapping(
+        str(database), str(image_dir), str(sparse_dir), next_image_callback=on_image
+    )
     return [models[k] for k in sorted(models)]
 
 
@@ -236,3 +246,28 @@ def export_features(
         arrays[f"{names[i]}//{names[j]}/matches"] = np.asarray(pair_matches, np.int64)
     with open(path, "wb") as file:
         np.savez(file, **arrays)
+
+
+def top_view(model, path: str | pathlib.Path, points: int = 20000) -> None:
+    """A PNG of the model from above: its points (at most ``points``, in their colours) and
+    camera centres with viewing directions on the world's x-z plane (COLMAP's world is the
+    first camera's frame, y down, so x-z is the ground when that camera was level)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    from matplotlib import pyplot as plt
+
+    xyz = np.array([p.xyz for p in model.points3D.values()]).reshape(-1, 3)
+    rgb = np.array([p.color for p in model.points3D.values()]).reshape(-1, 3) / 255
+    keep = np.random.default_rng(0).permutation(len(xyz))[:points]
+    poses = registered_poses(model)
+    centres = np.array([c for _, c in poses.values()]).reshape(-1, 3)
+    views = np.array([r[2] for r, _ in poses.values()]).reshape(-1, 3)  # optical axes in world
+    figure, axes = plt.subplots(figsize=(8, 8))
+    axes.scatter(xyz[keep, 0], xyz[keep, 2], s=1, c=rgb[keep], linewidths=0)
+    axes.quiver(centres[:, 0], centres[:, 2], views[:, 0], views[:, 2], color="red", width=0.003)
+    axes.set(
+        aspect="equal", xlabel="x", ylabel="z", title=f"{len(poses)} cameras, {len(xyz)} points"
+    )
+    figure.savefig(path, dpi=100)
+    plt.close(figure)
