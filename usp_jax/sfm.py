@@ -21,11 +21,10 @@ from __future__ import annotations
 import pathlib
 from collections.abc import Callable, Iterable, Sequence
 
-import cv2
 import numpy as np
 
 from usp_jax.inference.features import Features
-from usp_jax.inference.matching import nearest_neighbours
+from usp_jax.inference.matching import mutual_nearest_neighbours
 
 #: How to get pycolmap, quoted when it is missing.
 INSTALL = "pip install 'usp-jax[sfm]'"
@@ -87,12 +86,10 @@ def detect_images(
 def match_pairs(
     features: Sequence[Features], pairs: np.ndarray, progress: Callable = iter
 ) -> list[np.ndarray]:
-    """Mutual nearest neighbours in descriptor space (``inference.matching``, L2) of each pair:
+    """Mutual nearest neighbours in descriptor space (``inference.matching``, L2: what ``match`` pairs) of each pair:
     int ``[K, 2]`` (index into image i's keypoints, into image j's) per row of ``pairs``."""
     return [
-        nearest_neighbours(
-            features[i].descriptors, features[j].descriptors, cv2.NORM_L2, cross_check=True
-        )
+        mutual_nearest_neighbours(features[i].descriptors, features[j].descriptors)
         for i, j in progress(pairs)
     ]
 
