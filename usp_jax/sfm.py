@@ -30,6 +30,8 @@ from usp_jax.inference.matching import mutual_nearest_neighbours
 INSTALL = "pip install 'usp-jax[sfm]'"
 #: COLMAP's pixel-corner coordinates minus ours (pixel centres at integers, ``core.model``).
 COLMAP_OFFSET = 0.5
+#: Lowe's ratio test on the mutual nearest neighbours (1: none).
+RATIO = 1.0
 #: ``--window`` default: a video frame is matched to this many frames after it (COLMAP's own
 #: sequential matcher overlaps 10 too).
 WINDOW = 10
@@ -84,12 +86,12 @@ def detect_images(
 
 
 def match_pairs(
-    features: Sequence[Features], pairs: np.ndarray, progress: Callable = iter
+    features: Sequence[Features], pairs: np.ndarray, progress: Callable = iter, ratio: float = RATIO
 ) -> list[np.ndarray]:
     """Mutual nearest neighbours in descriptor space (``inference.matching``, L2: what ``match`` pairs) of each pair:
     int ``[K, 2]`` (index into image i's keypoints, into image j's) per row of ``pairs``."""
     return [
-        mutual_nearest_neighbours(features[i].descriptors, features[j].descriptors)
+        mutual_nearest_neighbours(features[i].descriptors, features[j].descriptors, ratio)
         for i, j in progress(pairs)
     ]
 
