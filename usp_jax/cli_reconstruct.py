@@ -31,7 +31,7 @@ from usp_jax.inference.images import IMAGE_SUFFIXES, read_image
 
 log = logging.getLogger(__name__)
 
-#: The network's defaults here: distilled weights at full size with the sub-pixel refinement,
+#: The network's defaults here: the distilled weights (fast) at full size with the refinement,
 #: and more points than a single match needs, as SIFT in COLMAP keeps thousands.
 WEIGHTS = "distilled"
 TOP = 2000
@@ -50,7 +50,7 @@ def add_parser(subparsers) -> None:
     )
     p.add_argument("images", help="a folder of photos (one size) or a video file")
     p.add_argument("--out", required=True, help="new folder for the database, models, summary")
-    options._add_checkpoint(p, default=WEIGHTS, why="fast, and as accurate here")
+    options._add_checkpoint(p, default=WEIGHTS, why="the fast network taught by paper")
     p.add_argument(
         "--top", type=options._positive, default=TOP, help=f"points per image (default {TOP})"
     )
