@@ -43,6 +43,13 @@ def test_mutual_nearest_neighbours_equal_opencvs_cross_checked_brute_force():
     assert mutual_nearest_neighbours(first[:0], second).shape == (0, 2)
 
 
+def test_the_ratio_test_keeps_a_match_whose_nearest_is_closer_than_ratio_times_the_second():
+    first = np.array([[0.0, 0.0]], np.float32)
+    second = np.array([[1.0, 0.0], [0.0, 1.5]], np.float32)  # distances 1 and 1.5
+    np.testing.assert_array_equal(mutual_nearest_neighbours(first, second, 0.7), [[0, 0]])
+    assert len(mutual_nearest_neighbours(first, second, 0.6)) == 0  # 1 >= 0.6 * 1.5
+
+
 def _poses(count: int, seed: int = 0):
     rng = np.random.default_rng(seed)
     return Rotation.random(count, random_state=seed).as_matrix(), rng.normal(0, 2, (count, 3))
