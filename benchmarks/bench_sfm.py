@@ -13,12 +13,14 @@ over all pairs of registered images (``sfm.pose_errors``).
 
 Inputs: ``--scene N`` renders a camera path of N frames through a room of photos
 (``evaluation.scenes``: ``room`` and ``camera_path``, true poses known); ``--images`` takes a
-folder of photos or a video (frames every ``--every``-th), no poses::
+folder of photos or a video (frames every ``--every``-th), no poses, or with ``--rectified`` a
+rectified stereo pair (the relative rotation the identity, the baseline along x)::
 
     python3 benchmarks/bench_sfm.py --scene 24 --photos data/corpus/train \\
         --json experiments/results/sfm/room.json
     python3 benchmarks/bench_sfm.py --images box.mp4 --every 15 \\
         --json experiments/results/sfm/box.json
+    python3 benchmarks/bench_sfm.py --images aloe --rectified --json .../aloe.json
 """
 
 from __future__ import annotations
@@ -31,6 +33,7 @@ import tempfile
 import time
 
 import cv2
+import numpy as np
 import pycolmap
 
 from usp_jax import sfm
@@ -123,6 +126,12 @@ def _parser() -> argparse.ArgumentParser:
     source = p.add_mutually_exclusive_group(required=True)
     source.add_argument("--scene", type=int, metavar="N", help="render a path of N frames")
     source.add_argument("--images", help="a folder of photos or a video")
+    p.add_argument(
+        "--rectified",
+        action="store_true",
+        help="--images is a rectified stereo pair (Middlebury's): true relative rotation the"
+        " identity, the second camera to the right of the first",
+    )
     p.add_argument("--photos", default="data/corpus/train", help="--scene's textures")
     p.add_argument("--size", type=int, nargs=2, default=(480, 640), metavar=("H", "W"))
     p.add_argument("--seed", type=int, default=0, help="--scene's room and path")
@@ -152,6 +161,8 @@ def main() -> None:
     else:
         video_frames(args.images, images, args.every)
     names = sorted(p.name for p in images.iterdir())
+    if args.rectified:
+        poses = {names[0]: (np.eye(3), np.zeros(3)), names[1]: (np.eye(3), np.array([1.0, 0, 0]))}
     start = time.perf_counter()
     detector = Detector.pretrained(
         args.weights, top_n=args.top, max_side=args.max_side, refine=True

@@ -174,8 +174,11 @@ def _stages(args, detector, work: pathlib.Path, source: pathlib.Path, summary: d
         sfm.export_features(work / "features.npz", names, features, pairs, matches)
     start = time.perf_counter()
     database = work / "database.db"
-    sfm.write_database(database, image_dir, names, features, pairs, matches)
-    sfm.verify(database)
+    with tqdm(total=2, desc="database, verify", disable=quiet, leave=False) as bar:
+        sfm.write_database(database, image_dir, names, features, pairs, matches)
+        bar.update()
+        sfm.verify(database)
+        bar.update()
     seconds["verify"] = time.perf_counter() - start
     summary["verified_pairs"] = sfm.verified_pairs(database)
     start = time.perf_counter()
