@@ -1,5 +1,5 @@
-"""The ``usp-jax`` command: train, evaluate, make-pairs, benchmark, detect, match, export, demo
-and track.
+"""The ``usp-jax`` command: train, evaluate, make-pairs, benchmark, detect, match, export, demo,
+track and reconstruct.
 Each command parses its options, checks its outputs can be written, and calls the Python API.
 
 Every failure a user can cause (a missing folder, a corrupt image, a bad override, an
@@ -374,6 +374,12 @@ def cmd_track(args) -> None:
     return cli_track.run(args, _load_detector)
 
 
+def cmd_reconstruct(args) -> None:
+    from usp_jax import cli_reconstruct
+
+    return cli_reconstruct.run(args, _load_detector)
+
+
 COMMANDS = {
     "train": cmd_train,
     "evaluate": cmd_evaluate,
@@ -384,6 +390,7 @@ COMMANDS = {
     "export": cmd_export,
     "demo": cmd_demo,
     "track": cmd_track,
+    "reconstruct": cmd_reconstruct,
 }
 
 

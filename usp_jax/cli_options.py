@@ -408,6 +408,13 @@ def _add_track(subparsers) -> None:
     add_parser(subparsers)
 
 
+def _add_reconstruct(subparsers) -> None:
+    """The ``reconstruct`` subcommand, whose options live with it (``usp_jax.cli_reconstruct``)."""
+    from usp_jax.cli_reconstruct import add_parser
+
+    add_parser(subparsers)
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = _Parser(
         prog="usp-jax", description="UnsuperPoint keypoints in JAX: train, evaluate, benchmark."
@@ -424,6 +431,7 @@ def build_parser() -> argparse.ArgumentParser:
         _add_export,
         _add_demo,
         _add_track,
+        _add_reconstruct,
     ):
         add(sub)
     for choice in sub._choices_actions:  # `usp-jax COMMAND -h` opens with what it does
