@@ -36,8 +36,8 @@ from bench_video import network_spec
 from tqdm import tqdm
 
 from usp_jax.evaluation import pose, scenes
-from usp_jax.evaluation.baselines import baseline_method
 from usp_jax.inference.detector import Detector
+from usp_jax.inference.methods import baseline_method
 from usp_jax.inference.tracking import VIDEO_SIDE, VIDEO_WEIGHTS
 from usp_jax.inference.weights import pretrained_path
 

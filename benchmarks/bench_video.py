@@ -40,9 +40,9 @@ import cv2
 import numpy as np
 
 from usp_jax.evaluation import pose, scenes
-from usp_jax.evaluation.baselines import baseline_method
 from usp_jax.inference import tracking
 from usp_jax.inference.detector import Detector, grow, shrink
+from usp_jax.inference.methods import baseline_method
 from usp_jax.inference.weights import pretrained_path
 
 GAPS = (1, 5, 10)

@@ -6,7 +6,7 @@ import cv2
 import numpy as np
 import pytest
 
-from usp_jax.evaluation.baselines import opencv_method
+from usp_jax.inference.methods import opencv_method
 
 BENCHMARKS = pathlib.Path(__file__).resolve().parents[1] / "benchmarks"
 

@@ -10,10 +10,10 @@ import numpy as np
 import pytest
 
 from usp_jax.cli import main
-from usp_jax.evaluation.baselines import opencv_method
 from usp_jax.inference import tracking
 from usp_jax.inference.detector import Detector
 from usp_jax.inference.features import Features
+from usp_jax.inference.methods import opencv_method
 
 SIZE = (96, 128)  # (height, width) of the test frames
 STEPS = 6

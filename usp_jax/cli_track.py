@@ -114,7 +114,7 @@ def _method(args, load_detector):
         if used:
             raise ValueError(f"{' and '.join(used)} only apply to --method usp")
         # XFeat without its packages raises a ValueError saying so.
-        from usp_jax.evaluation.baselines import baseline_method
+        from usp_jax.inference.methods import baseline_method
 
         return baseline_method(args.method, args.top)
     side = getattr(args, "network_side", None)
