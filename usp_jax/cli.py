@@ -18,6 +18,7 @@ import pathlib
 import signal
 import sys
 import traceback
+import warnings
 
 import numpy as np
 
@@ -65,7 +66,16 @@ def _figure_file(path: str | None, what: str) -> str | None:
         return path
     from usp_jax.evaluation.plotting import figure_path
 
-    target = str(figure_path(path))
+    return _suffixed_file(path, what, figure_path)
+
+
+def _suffixed_file(path: str | None, what: str, suffixed) -> str | None:
+    """The file an option writes when ``suffixed`` may add a suffix to the name given, checked
+    as given too: an existing folder is refused, not written beside as ``FOLDER.png``."""
+    if not path:
+        return path
+    _check_output_file(path, what)
+    target = str(suffixed(path))
     _check_output_file(target, what)
     return target
 
@@ -336,9 +346,8 @@ def cmd_export(args) -> None:
 
     if not (args.save_weights or args.artifact):
         raise ValueError("nothing to export: give --save-weights FILE.npz and/or --artifact FILE")
-    if args.save_weights:  # what is written and printed: NAME.npz for a NAME without .npz
-        args.save_weights = str(weights.weights_file(args.save_weights))
-    _check_output_file(args.save_weights, "--save-weights")
+    # What is written and printed: NAME.npz for a NAME without .npz.
+    args.save_weights = _suffixed_file(args.save_weights, "--save-weights", weights.weights_file)
     _check_output_file(args.artifact, "--artifact")
     detector = _load_detector(args)
     if args.save_weights:
@@ -393,7 +402,8 @@ def main(argv: list[str] | None = None) -> int:
     """
     if argv is None:
         sys.unraisablehook = _without_closed_loop_callbacks(sys.unraisablehook)
-    code = _main(argv)
+    with warnings.catch_warnings():  # _main's plain warning lines end with the command
+        code = _main(argv)
     if argv is None and code == 2:
         sys.stdout.flush()
         sys.stderr.flush()
@@ -401,6 +411,21 @@ def main(argv: list[str] | None = None) -> int:
         os.dup2(quiet, 2)  # the error line is out; native threads' late prints are not
         os._exit(code)
     return code
+
+
+def _plain_warnings(command: str, show):
+    """``warnings.showwarning`` (``show``) that prints usp-jax's own warnings (a skipped photo)
+    as one plain line each, ``usp-jax COMMAND: warning: ...``, without Python's file, line and
+    category; other libraries' warnings keep ``show``'s form."""
+    package = pathlib.Path(__file__).parent
+
+    def plain(message, category, filename, lineno, file=None, line=None) -> None:
+        if not pathlib.Path(filename).absolute().is_relative_to(package):
+            return show(message, category, filename, lineno, file, line)
+        text = " ".join(str(message).split())
+        print(f"usp-jax {command}: warning: {text}", file=file or sys.stderr)
+
+    return plain
 
 
 def _without_closed_loop_callbacks(hook):
@@ -435,6 +460,7 @@ def _main(argv: list[str] | None) -> int:
     if not args.verbose:
         logging.getLogger("absl").setLevel(logging.CRITICAL)
         logging.getLogger("asyncio").setLevel(logging.CRITICAL)
+    warnings.showwarning = _plain_warnings(args.command, warnings.showwarning)
     from usp_jax.training import distributed
 
     try:
@@ -469,8 +495,8 @@ def _classify(err: BaseException) -> tuple[int, str | None]:
     from usp_jax.training.metrics import TrainingDiverged
     from usp_jax.training.workdir import WorkdirError
 
-    if isinstance(err, KeyboardInterrupt):
-        return 130, "interrupted"
+    if isinstance(err, KeyboardInterrupt):  # train's says which step it resumes from
+        return 130, str(err) or "interrupted"
     user = isinstance(err, (*_USER_ERRORS, TrainingDiverged, WorkdirError, DistributedError))
     if user or (isinstance(err, OSError) and err.errno in _USER_ERRNOS):
         named = isinstance(err, OSError) and err.filename and err.strerror

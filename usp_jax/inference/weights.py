@@ -62,8 +62,11 @@ def save_weights(
     returns the file written (:func:`weights_file`).
 
     Float16 halves the file; inference casts back to float32. Raises ValueError instead of
-    writing a value that float16 cannot hold (|x| > 65504), so no weight is silently lost.
+    writing a value that float16 cannot hold (|x| > 65504), so no weight is silently lost, and
+    for a ``path`` that is a folder (rather than writing ``FOLDER.npz`` beside it).
     """
+    if pathlib.Path(path).is_dir():
+        raise ValueError(f"weights file {path} is a folder, not a file")
     flat = flax.traverse_util.flatten_dict(
         {"params": variables["params"], "batch_stats": variables["batch_stats"]},
         sep=_SEPARATOR,
@@ -103,7 +106,7 @@ def load_weights(path: str | pathlib.Path) -> tuple[ModelConfig, dict]:
         try:
             model_config = settings.from_dict(json.loads(str(data[_CONFIG_KEY])), ModelConfig)
             settings.check_fields(model_config, "model.")
-        except (ValueError, TypeError, AttributeError) as error:
+        except (ValueError, TypeError, AttributeError, RecursionError) as error:
             raise ValueError(
                 f"{path}: its {_CONFIG_KEY} entry is not a valid model config"
                 f" ({type(error).__name__}: {str(error).splitlines()[0] if str(error) else ''})"
@@ -116,8 +119,10 @@ def load_weights(path: str | pathlib.Path) -> tuple[ModelConfig, dict]:
                 array = data[key]
             except (OSError, ValueError, zipfile.BadZipFile) as error:
                 raise ValueError(f"{path}: array {key} is not readable ({type(error).__name__})")
-            if array.dtype.kind not in "fiu":
-                raise ValueError(f"{path}: array {key} holds {array.dtype}, not numbers")
+            if array.dtype.kind != "f":  # integers would run, but no training writes them
+                raise ValueError(
+                    f"{path}: array {key} holds {array.dtype}, not floating-point weights"
+                )
             flat[key] = array.astype(np.float32)
     _check_arrays(path, model_config, flat)
     return model_config, flax.traverse_util.unflatten_dict(flat, sep=_SEPARATOR)
