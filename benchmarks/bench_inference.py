@@ -153,7 +153,7 @@ def main() -> None:
         # The refinement's cost (inference.refine): the default detector beside its raw cells.
         raw_cells = Detector.pretrained("paper", top_n=top_n, refine=False)
         student = Detector.pretrained("distilled", top_n=top_n, refine=True)
-        xfeat = xfeat_runner(top_n)
+        xfeat_detect = xfeat_runner(top_n)
         for batch in args.batch:
             images = frames[:batch]
             runs = {}
@@ -163,8 +163,8 @@ def main() -> None:
             runs[REFINED_STUDENT] = lambda: student.detect_batch(images)
             for name in OPENCV:
                 runs[name] = stream(baselines.opencv_method(name, top_n).detect, images)
-            if xfeat is not None:
-                runs["XFeat"] = stream(xfeat, images)
+            if xfeat_detect is not None:
+                runs["XFeat"] = stream(xfeat_detect, images)
             for run in runs.values():  # compiles the detectors
                 jax.block_until_ready(run())
             for label, seconds in common.interleaved(runs, args.rounds, args.block).items():
@@ -186,7 +186,7 @@ def main() -> None:
                 ),
                 "weights": weights,
             }
-        if xfeat is None:
+        if xfeat_detect is None:
             print(f"XFeat: not timed, not installed ({xfeat.INSTALL})")
     ceiling = results["matmul_gflops"] = common.settled_ceiling(ceiling)
     print(f"matmul ceiling, the better of before and after the timings: {ceiling:.0f} GFLOP/s")

@@ -130,6 +130,7 @@ def cmd_train(args) -> None:
         overrides=args.overrides,
         steps=args.steps,
     )
+    _check_data_given(args, cfg)
     who = ""
     if _distributed(args):
         launch = distributed.Launch(
@@ -140,7 +141,10 @@ def cmd_train(args) -> None:
             args.heartbeat_timeout,
         )
         who = distributed.join(launch, cfg, report=lambda line: _user_error("train", line))
-    print(f"{who}training {args.config} config on {cfg.data.source} into {args.workdir}")
+    print(
+        f"{who}training {args.config} config on {cfg.data.source} into {args.workdir},"
+        f" up to step {cfg.num_steps:,} at batch {cfg.batch_size}"
+    )
     state = train.fit(
         cfg,
         args.workdir,
@@ -156,6 +160,22 @@ def cmd_train(args) -> None:
         return 128 + signal.SIGTERM  # as if SIGTERM had ended it: the run is not finished
     print(f"{who}done: step {step}; checkpoints in {checkpoints}")
     return 0
+
+
+def _check_data_given(args, cfg) -> None:
+    """Raises ValueError when nothing chose the photos: no ``--data``, no ``data.source=`` and
+    a config that leaves the default, so that a forgotten flag does not start a long run on
+    the few bundled photos."""
+    from usp_jax.training.data import DataConfig
+
+    chosen = args.data is not None or any(
+        o.split("=", 1)[0].strip() == "data.source" for o in args.overrides
+    )
+    if not chosen and cfg.data.source == DataConfig().source:
+        raise ValueError(
+            "--data is required: an image folder, tfds:NAME[:SPLIT], or 'sample' for the few"
+            " photos bundled with the installed packages"
+        )
 
 
 def _distributed(args) -> bool:
@@ -188,26 +208,30 @@ def cmd_evaluate(args) -> None:
     enlarged = f", model on {args.upsample}x enlarged images" if args.upsample > 1 else ""
     enlarged += ", model matching across any rotation" if guide is not None else ""
     enlarged += ", model on an image pyramid (--any-scale)" if args.any_scale else ""
-    print(f"{args.hpatches} at {height}x{width}, top {args.top} points, NMS {args.nms}{enlarged}")
+    print(f"{args.hpatches}{enlarged}")  # the table's first line has the size, points and NMS
     print(protocol.format_table(results))
     if args.json:
         pathlib.Path(args.json).write_text(json.dumps(protocol.to_json(results), indent=1))
         print(f"wrote {args.json}")
     if args.plots and methods:
+        from usp_jax.quickstart import example_pair_files
+
         path = plotting.plot_example_pair(
             methods[0], args.hpatches, args.plots, args.res, args.top, args.nms
         )
-        keypoints = path.with_name(path.name.removesuffix("_matches.png") + "_keypoints.png")
-        print(f"wrote {keypoints}")
-        print(f"wrote {path}")
+        for written in example_pair_files(path):
+            print(f"wrote {written}")
 
 
 def cmd_make_pairs(args) -> None:
     from usp_jax.evaluation.pairs import make_pairs
+    from usp_jax.inference.images import sample_photos
 
     _check_output_folder(args.out, "--out")
+    # 'sample': the photos bundled with the installed packages, as train's --data takes it.
+    images = [path for _, path in sample_photos()] if args.images == "sample" else args.images
     scenes = make_pairs(
-        args.images,
+        images,
         args.out,
         seed=args.seed,
         size=args.size,
@@ -360,10 +384,11 @@ def cmd_export(args) -> None:
 
 
 def cmd_demo(args) -> None:
-    from usp_jax.quickstart import demo
+    from usp_jax.quickstart import DEFAULT_OUT, demo
 
-    _check_output_folder(args.out, "--out")
-    demo(args.out, args.weights)
+    out = args.out or str(DEFAULT_OUT)
+    _check_output_folder(out, "--out")
+    demo(out, args.weights)
 
 
 def cmd_track(args) -> None:

@@ -294,7 +294,7 @@ class Detector:
         any_scale: bool = False,
         refine: bool | str | pathlib.Path | None = None,
     ):
-        _check_top_n(top_n)
+        top_n = _check_top_n(top_n)
         if not all(math.isfinite(v) and v >= 0 for v in (nms_radius, border)):
             raise ValueError(
                 f"nms_radius and border must be finite and >= 0, got nms_radius={nms_radius},"
@@ -303,9 +303,7 @@ class Detector:
         integer = isinstance(upsample, (int, np.integer)) and not isinstance(upsample, bool)
         if not integer or upsample < 1:
             raise ValueError(f"upsample must be a positive integer, got {upsample!r}")
-        integer = isinstance(max_side, (int, np.integer)) and not isinstance(max_side, bool)
-        if not integer or max_side < 0:
-            raise ValueError(f"max_side must be an integer >= 0, got {max_side!r}")
+        max_side = check_max_side(max_side)
         if jax.default_backend() == "cpu":
             model_config = dataclasses.replace(model_config, dtype="float32")
         self.model_config = model_config
@@ -485,6 +483,22 @@ class Detector:
 
 
 def _check_top_n(top_n: int | None) -> int | None:
-    if top_n is not None and top_n < 1:
-        raise ValueError(f"top_n must be positive or None, got {top_n}")
-    return top_n
+    """``top_n`` as an int, or None; a ValueError naming it for anything but a positive integer
+    (a float such as 2.5 or NaN would reach the compiled top-N as a shape)."""
+    if top_n is None:
+        return None
+    integer = isinstance(top_n, (int, np.integer)) and not isinstance(top_n, bool)
+    if not integer or top_n < 1:
+        raise ValueError(f"top_n must be a positive integer or None, got {top_n!r}")
+    return int(top_n)
+
+
+def check_max_side(max_side: int, name: str = "max_side") -> int:
+    """``max_side`` as an int: 0 (native size) or at least one cell, ``CELL`` px; a ValueError
+    naming ``name`` otherwise (a copy 1 to 7 px long holds no whole cell)."""
+    integer = isinstance(max_side, (int, np.integer)) and not isinstance(max_side, bool)
+    if not integer or not (max_side == 0 or max_side >= CELL):
+        raise ValueError(
+            f"{name} must be 0 (native size) or an integer >= {CELL}, got {max_side!r}"
+        )
+    return int(max_side)

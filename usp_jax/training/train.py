@@ -28,6 +28,7 @@ import numpy as np
 from jax.sharding import NamedSharding
 from jax.sharding import PartitionSpec as P
 
+from usp_jax.inference.weights import damaged_checkpoint
 from usp_jax.training import config as config_lib
 from usp_jax.training import distributed as multihost
 from usp_jax.training.metrics import (
@@ -267,9 +268,8 @@ def _restore_latest(mngr, state: TrainState, workdir: pathlib.Path) -> TrainStat
     try:
         state = checkpoint.restore_state(mngr, state)
     except Exception as error:  # a damaged checkpoint: one line, the cause chained
-        raise WorkdirError(
-            f"cannot restore checkpoint step {latest} of {workdir}: {_first_line(error)}"
-        ) from error
+        directory = workdir / "checkpoints"
+        raise WorkdirError(damaged_checkpoint(directory, latest, error, resuming=True)) from error
     log.info("resumed from step %d", int(state.step))
     return state
 
