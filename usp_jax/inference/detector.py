@@ -40,6 +40,7 @@ from usp_jax.core.model import (
 )
 from usp_jax.inference import points, pyramid, weights
 from usp_jax.inference import refine as refine_lib
+from usp_jax.inference.compiled import BoundedJit
 from usp_jax.inference.features import Features
 from usp_jax.inference.memory import check_fits, measured_bytes_per_pixel
 from usp_jax.inference.nms import NEIGHBOUR_REACH, radius_nms
@@ -344,9 +345,7 @@ class Detector:
         self._function = functools.partial(
             pyramid.detect_pyramid if self.any_scale else _detect_padded, **options
         )
-        self._forward = jax.jit(
-            self._function, static_argnames="top_n", compiler_options=compiler_options()
-        )
+        self._forward = BoundedJit(self._function, compiler_options=compiler_options())
 
     def replace(self, **changes) -> Detector:
         """A detector of the same weights with ``changes`` to its options (``__init__``'s
@@ -483,8 +482,7 @@ class Detector:
 
 
 def _check_top_n(top_n: int | None) -> int | None:
-    """``top_n`` as an int, or None; a ValueError naming it for anything but a positive integer
-    (a float such as 2.5 or NaN would reach the compiled top-N as a shape)."""
+    """``top_n`` as an int or None; else a ValueError (2.5 or NaN would reach jit as a shape)."""
     if top_n is None:
         return None
     integer = isinstance(top_n, (int, np.integer)) and not isinstance(top_n, bool)
@@ -493,12 +491,9 @@ def _check_top_n(top_n: int | None) -> int | None:
     return int(top_n)
 
 
-def check_max_side(max_side: int, name: str = "max_side") -> int:
-    """``max_side`` as an int: 0 (native size) or at least one cell, ``CELL`` px; a ValueError
-    naming ``name`` otherwise (a copy 1 to 7 px long holds no whole cell)."""
+def check_max_side(max_side: int) -> int:
+    """``max_side`` as an int: 0 (native size) or at least one ``CELL``; else a ValueError."""
     integer = isinstance(max_side, (int, np.integer)) and not isinstance(max_side, bool)
     if not integer or not (max_side == 0 or max_side >= CELL):
-        raise ValueError(
-            f"{name} must be 0 (native size) or an integer >= {CELL}, got {max_side!r}"
-        )
+        raise ValueError(f"max_side must be 0 or an integer >= {CELL}, got {max_side!r}")
     return int(max_side)
