@@ -500,10 +500,10 @@ def test_a_really_full_tmpfs_is_one_line(tmp_path):
 
 
 def test_only_callbacks_into_a_closed_loop_are_kept_quiet():
-    from usp_jax.cli import _without_closed_loop_callbacks
+    from usp_jax.cli_errors import without_closed_loop_callbacks
 
     seen = []
-    hook = _without_closed_loop_callbacks(seen.append)
+    hook = without_closed_loop_callbacks(seen.append)
     kept = [RuntimeError("Event loop is still running"), ValueError("Event loop is closed")]
     for error in [RuntimeError("Event loop is closed"), *kept]:
         hook(types.SimpleNamespace(exc_value=error))

@@ -10,7 +10,6 @@ shows its traceback.
 
 from __future__ import annotations
 
-import errno
 import json
 import logging
 import os
@@ -22,26 +21,9 @@ import warnings
 
 import numpy as np
 
+from usp_jax import cli_errors
+from usp_jax.cli_errors import user_error
 from usp_jax.cli_options import parse_args
-
-_USER_ERRORS = (FileNotFoundError, ValueError, NotADirectoryError, IsADirectoryError)
-# OSErrors a user's paths or disk cause: reported in one line like the errors above.
-_USER_ERRNOS = frozenset(
-    {
-        errno.ENOENT,
-        errno.EACCES,
-        errno.EPERM,
-        errno.EROFS,
-        errno.ENOSPC,
-        errno.EDQUOT,
-        errno.EEXIST,
-        errno.ENOTDIR,
-        errno.EISDIR,
-        errno.ENAMETOOLONG,
-        errno.EFBIG,
-        errno.ELOOP,
-    }
-)
 
 
 def _check_output_file(path: str | None, what: str) -> None:
@@ -140,7 +122,7 @@ def cmd_train(args) -> None:
             args.init_timeout,
             args.heartbeat_timeout,
         )
-        who = distributed.join(launch, cfg, report=lambda line: _user_error("train", line))
+        who = distributed.join(launch, cfg, report=lambda line: user_error("train", line))
     print(
         f"{who}training {args.config} config on {cfg.data.source} into {args.workdir},"
         f" up to step {cfg.num_steps:,} at batch {cfg.batch_size}"
@@ -412,12 +394,6 @@ COMMANDS = {
 }
 
 
-def _user_error(command: str, message: str) -> None:
-    """One line on stderr, however long the message (messages may quote multi-line values)."""
-    text = " ".join(message.split()) or "failed"
-    print(f"usp-jax {command}: error: {text}", file=sys.stderr)
-
-
 def main(argv: list[str] | None = None) -> int:
     """Runs the command; returns its exit status (0, 2 for a user error, 130 if interrupted).
 
@@ -426,7 +402,7 @@ def main(argv: list[str] | None = None) -> int:
     into a closed asyncio loop while the interpreter shuts down, each printing a traceback.
     """
     if argv is None:
-        sys.unraisablehook = _without_closed_loop_callbacks(sys.unraisablehook)
+        sys.unraisablehook = cli_errors.without_closed_loop_callbacks(sys.unraisablehook)
     with warnings.catch_warnings():  # _main's plain warning lines end with the command
         code = _main(argv)
     if argv is None and code == 2:
@@ -436,38 +412,6 @@ def main(argv: list[str] | None = None) -> int:
         os.dup2(quiet, 2)  # the error line is out; native threads' late prints are not
         os._exit(code)
     return code
-
-
-def _plain_warnings(command: str, show):
-    """``warnings.showwarning`` (``show``) that prints usp-jax's own warnings (a skipped photo)
-    as one plain line each, ``usp-jax COMMAND: warning: ...``, without Python's file, line and
-    category; other libraries' warnings keep ``show``'s form."""
-    package = pathlib.Path(__file__).parent
-
-    def plain(message, category, filename, lineno, file=None, line=None) -> None:
-        if not pathlib.Path(filename).absolute().is_relative_to(package):
-            return show(message, category, filename, lineno, file, line)
-        text = " ".join(str(message).split())
-        print(f"usp-jax {command}: warning: {text}", file=file or sys.stderr)
-
-    return plain
-
-
-def _without_closed_loop_callbacks(hook):
-    """``hook`` (a ``sys.unraisablehook``) minus TensorStore's callbacks into a closed loop.
-
-    A checkpoint save that fails (a full disk) ends orbax's asyncio loop while TensorStore
-    still finishes its other writes; each finished write then tries to wake the closed loop
-    and prints a traceback from a native thread, hundreds of them, racing train's one error
-    line. They say nothing the error line does not.
-    """
-
-    def filtered(unraisable) -> None:
-        error = unraisable.exc_value
-        if not (isinstance(error, RuntimeError) and str(error) == "Event loop is closed"):
-            hook(unraisable)
-
-    return filtered
 
 
 def _main(argv: list[str] | None) -> int:
@@ -485,52 +429,29 @@ def _main(argv: list[str] | None) -> int:
     if not args.verbose:
         logging.getLogger("absl").setLevel(logging.CRITICAL)
         logging.getLogger("asyncio").setLevel(logging.CRITICAL)
-    warnings.showwarning = _plain_warnings(args.command, warnings.showwarning)
+    warnings.showwarning = cli_errors.plain_warnings(args.command, warnings.showwarning)
     from usp_jax.training import distributed
 
     try:
         code = COMMANDS[args.command](args) or 0
     except BaseException as err:
-        code, message = _classify(err)
+        code, message = cli_errors.classify(err)
         if distributed.joined():  # a multi-process run ends in every process
             own = message or (
                 f"{type(err).__name__}: {distributed.first_line(err)} (its traceback is in its log)"
             )
 
-            def show(text: str) -> None:
+            def report(text: str) -> None:
                 if text != own:  # another process failed first: its error, not the broken link
-                    _user_error(args.command, text)
+                    user_error(args.command, text)
                 elif message is None:
                     traceback.print_exc()
                 else:
-                    _show(args.command, code, message)
+                    cli_errors.show(args.command, code, message)
 
-            distributed.leave_after_failure(code, own, show)
+            distributed.leave_after_failure(code, own, report)
         if message is None:
             raise
-        _show(args.command, code, message)
+        cli_errors.show(args.command, code, message)
         return code
     return code
-
-
-def _classify(err: BaseException) -> tuple[int, str | None]:
-    """(exit status, one-line message) of a failure; the message is None for an internal error
-    (a bug), which shows its traceback instead."""
-    from usp_jax.training.distributed import DistributedError
-    from usp_jax.training.metrics import TrainingDiverged
-    from usp_jax.training.workdir import WorkdirError
-
-    if isinstance(err, KeyboardInterrupt):  # train's says which step it resumes from
-        return 130, str(err) or "interrupted"
-    user = isinstance(err, (*_USER_ERRORS, TrainingDiverged, WorkdirError, DistributedError))
-    if user or (isinstance(err, OSError) and err.errno in _USER_ERRNOS):
-        named = isinstance(err, OSError) and err.filename and err.strerror
-        return 2, f"{err.filename}: {err.strerror}" if named else str(err)
-    return 1, None
-
-
-def _show(command: str, code: int, message: str) -> None:
-    if code == 130:
-        print(f"usp-jax {command}: {message}", file=sys.stderr)
-    else:
-        _user_error(command, message)
