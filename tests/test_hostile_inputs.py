@@ -360,6 +360,7 @@ def test_a_damaged_config_record_is_one_line(tmp_path, capsys):
 # One run per workdir
 
 
+@pytest.mark.slow
 def test_a_second_train_on_a_locked_workdir_is_told_who_holds_it(tmp_path):
     """The second run is a real process: the lock is the kernel's, per open file."""
     workdir = tmp_path / "run"
@@ -455,6 +456,7 @@ sys.exit(main(sys.argv[1:]))
 """
 
 
+@pytest.mark.slow
 def test_a_full_disk_is_one_line_from_the_command(tmp_path):
     workdir = tmp_path / "run"
     result = subprocess.run(
