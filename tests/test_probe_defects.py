@@ -18,7 +18,7 @@ from usp_jax import inference
 from usp_jax.cli import main
 from usp_jax.cli_options import build_parser
 from usp_jax.evaluation import pairs as pairs_lib
-from usp_jax.evaluation import sequences
+from usp_jax.evaluation import pairs_folder, sequences
 from usp_jax.inference import matching as matching_lib
 from usp_jax.inference import memory
 from usp_jax.training import checkpoint, train
@@ -157,11 +157,11 @@ def test_make_pairs_writes_only_into_a_new_or_empty_folder_or_over_its_own_outpu
     for folder in (photos, hpatches):  # the user's photos; pairs not made by make-pairs
         before = snapshot(folder)
         assert main([*make, str(folder)]) == 2
-        assert f"no {pairs_lib.MANIFEST}" in one_error_line(capsys, "make-pairs")
+        assert f"no {pairs_folder.MANIFEST}" in one_error_line(capsys, "make-pairs")
         assert snapshot(folder) == before
     out = tmp_path / "out"
     assert main([*make, str(out)]) == 0
-    manifest = json.loads((out / pairs_lib.MANIFEST).read_text())
+    manifest = json.loads((out / pairs_folder.MANIFEST).read_text())
     assert manifest["complete"] and manifest["scenes"] == ["i_a", "v_a"]
     first = snapshot(out)
     assert main([*make, str(out)]) == 0  # a re-run replaces its own output, identically
@@ -268,8 +268,8 @@ def test_a_scene_that_fails_midway_leaves_nothing_half_made(tmp_path, photo, mon
     monkeypatch.setattr(pairs_lib.cv2, "imwrite", imwrite)
     with pytest.raises(OSError, match="could not write"):
         pairs_lib.make_pairs(photos, tmp_path / "o", size=(64, 96), num_views=2)
-    assert sorted(p.name for p in (tmp_path / "o").iterdir()) == [pairs_lib.MANIFEST]
-    assert not json.loads((tmp_path / "o" / pairs_lib.MANIFEST).read_text())["complete"]
+    assert sorted(p.name for p in (tmp_path / "o").iterdir()) == [pairs_folder.MANIFEST]
+    assert not json.loads((tmp_path / "o" / pairs_folder.MANIFEST).read_text())["complete"]
 
 
 # ---------------------------------------------------------------------------------------------
