@@ -88,8 +88,12 @@ def test_figures_draws_a_tiny_runs_statistics_and_curves(tmp_path):
     }
 
 
-# Run before the script: torch cannot be imported, as on a fresh install without XFeat.
-WITHOUT_TORCH = "import sys, runpy; sys.modules['torch'] = None; sys.argv = sys.argv[1:];"
+# Run before the script: torch cannot be imported, as on a fresh install without XFeat; the
+# script's folder comes first on the path, as when Python runs it.
+WITHOUT_TORCH = (
+    "import os, sys, runpy; sys.modules['torch'] = None; sys.argv = sys.argv[1:];"
+    " sys.path.insert(0, os.path.dirname(sys.argv[0]));"
+)
 
 
 @pytest.mark.slow
