@@ -140,7 +140,11 @@ def test_unwritable_outputs_are_one_line_before_any_work(tmp_path, capsys):
         (["detect", "a.png", "--json", str(afile / "k.json")], "detect", "afile"),
         (["demo", "--out", str(afile)], "demo", "is not a folder"),
         (["make-pairs", "--images", "x", "--out", str(afile / "p")], "make-pairs", "afile"),
-        (["train", "--workdir", str(afile), *TINY_RUN], "train", "exists and is not a folder"),
+        (
+            ["train", "--data", "sample", "--workdir", str(afile), *TINY_RUN],
+            "train",
+            "exists and is not a folder",
+        ),
     ]
     for argv, command, message in cases:
         assert main(argv) == 2, argv
@@ -151,7 +155,7 @@ def test_unwritable_outputs_are_one_line_before_any_work(tmp_path, capsys):
 def test_a_workdir_in_a_read_only_folder_is_one_line(tmp_path, capsys, monkeypatch):
     # Root ignores permission bits, so the check itself is made to answer "not writable".
     monkeypatch.setattr(workdir_lib.os, "access", lambda path, mode: False)
-    assert main(["train", "--workdir", str(tmp_path / "w"), *TINY_RUN]) == 2
+    assert main(["train", "--data", "sample", "--workdir", str(tmp_path / "w"), *TINY_RUN]) == 2
     assert "is not writable" in one_error_line(capsys, "train")
     assert not (tmp_path / "w").exists()
 
@@ -176,7 +180,7 @@ def _rewrite(source, target, change):
         ("missing", "is missing"),
         ("extra", "params/Extra/kernel is not part of"),
         ("config", "model_config entry is not a valid model config"),
-        ("strings", "not numbers"),
+        ("strings", "not floating-point weights"),
     ],
 )
 def test_a_bad_weights_file_is_one_line_naming_the_file_and_the_array(
@@ -351,7 +355,7 @@ def test_a_damaged_config_record_is_one_line(tmp_path, capsys):
     workdir = tmp_path / "run"
     workdir.mkdir()
     (workdir / "config.json").write_text("{not json")
-    assert main(["train", "--workdir", str(workdir), *TINY_RUN]) == 2
+    assert main(["train", "--data", "sample", "--workdir", str(workdir), *TINY_RUN]) == 2
     assert "config.json is not a readable usp-jax config" in one_error_line(capsys, "train")
     assert (workdir / "config.json").read_text() == "{not json"
 
