@@ -175,6 +175,7 @@ def test_evaluate_baselines_prints_table_and_writes_json(pairs_dir, tmp_path, ca
     ]
 
 
+@pytest.mark.slow
 def test_train_resumes_and_the_checkpoint_detects_and_evaluates(
     workdir, pairs_dir, tmp_path, photo, capsys
 ):

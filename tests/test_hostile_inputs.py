@@ -290,6 +290,7 @@ def test_resuming_with_other_settings_is_refused_naming_the_keys(trained):
     assert _snapshot(trained) == before
 
 
+@pytest.mark.slow
 def test_an_incompatible_network_is_refused_even_when_changes_are_allowed(trained, capsys):
     before = _snapshot(trained)
     bigger = tiny_config(**{"model.descriptor_dim": 128})
@@ -326,6 +327,7 @@ def test_an_incompatible_network_is_refused_even_when_changes_are_allowed(traine
     assert _snapshot(trained) == before
 
 
+@pytest.mark.slow
 def test_allowed_changes_resume_and_are_recorded(tmp_path):
     workdir = tmp_path / "run"
     train.fit(tiny_config(), workdir, progress=False)
@@ -480,6 +482,7 @@ def test_a_full_disk_is_one_line_from_the_command(tmp_path):
     os.geteuid() != 0 or not sys.platform.startswith("linux"),
     reason="mounting a small tmpfs needs root on Linux",
 )
+@pytest.mark.slow
 def test_a_really_full_tmpfs_is_one_line(tmp_path):
     mount = tmp_path / "small"
     mount.mkdir()
