@@ -12,6 +12,12 @@ Reported per method, on windows of consecutive frames spread over the video:
   verification, track ids), the windows' first frames left out; the methods take turns frame by
   frame, so the machine's load drifts over all of them alike.
 
+With ``--photos FOLDER`` instead of a video, the footage is rendered: a camera walking a smooth
+path through a ray-cast room of those photos (``evaluation.scenes.camera_path``), each frame's
+pose known, and every method's pairs 1, 5 and 10 frames apart also get their relative pose from
+the essential matrix (``evaluation.pose``): AUC at 5/10/20 degrees beside the inliers, so a
+method is judged by how right its matches are, not only how many. Real footage has no poses.
+
 The footage: ``box.mp4`` (640x480, 455 frames, a hand-held camera and a box moved by hand),
 from the Debian package opencv-doc, which training never used (``experiments/build_corpus.py``
 takes frames of ``vtest.avi`` only)::
@@ -33,9 +39,10 @@ import common
 import cv2
 import numpy as np
 
-from usp_jax.evaluation.baselines import baseline_method
+from usp_jax.evaluation import pose, scenes
 from usp_jax.inference import tracking
 from usp_jax.inference.detector import Detector, grow, shrink
+from usp_jax.inference.methods import baseline_method
 from usp_jax.inference.weights import pretrained_path
 
 GAPS = (1, 5, 10)
@@ -53,6 +60,26 @@ def read_video(path: str) -> list[np.ndarray]:
     if not frames:
         raise SystemExit(f"{path}: no frame could be read")
     return frames
+
+
+def rendered_path(folder: str, count: int, seed: int) -> tuple[list[np.ndarray], list]:
+    """``count`` frames (480x640) of a camera walking through a room of ``folder``'s photos, and
+    the cameras (``scenes.Camera``) that took them."""
+    room = scenes.room(scenes.load_photos(folder), seed=seed)
+    cameras = scenes.camera_path(room, count, seed=seed)
+    return [scenes.render(room, camera)[0] for camera in cameras], cameras
+
+
+def pose_accuracy(recording, pairs: list[tuple[int, int]], cameras: list) -> dict[str, float]:
+    """AUC at 5/10/20 degrees (``pose.pose_auc``) of the relative poses the recorded features
+    of frames (i, j) give (mutual nearest neighbours, essential matrix), against the cameras'."""
+    errors = []
+    for i, j in pairs:
+        R, t = scenes.relative_pose(cameras[i], cameras[j])
+        pair = pose.PosePair(f"{i}-{j}", None, None, cameras[i].K, cameras[j].K, R, t)
+        features = recording.features[i], recording.features[j]
+        errors.append(pose.pair_row("", pair, *features, recording.norm)["error"])
+    return {f"{t:g}": auc for t, auc in zip(pose.THRESHOLDS, pose.pose_auc(errors), strict=True)}
 
 
 def shot_cuts(frames: list[np.ndarray]) -> list[int]:
@@ -136,7 +163,11 @@ def methods(top: int, networks: list[tuple], baselines: list[str]) -> dict[str, 
     return found
 
 
-def run(frames, windows: list[range], cuts: list[int], detectors: dict) -> dict:
+def run(
+    frames, windows: list[range], cuts: list[int], detectors: dict, cameras: list | None = None
+) -> dict:
+    """Every method through the tracker on every window (module docstring); ``cameras``: each
+    frame's known camera, for the pose AUC per gap."""
     recordings = {name: Recording(method) for name, method in detectors.items()}
     times = {name: [] for name in detectors}
     lengths = {name: [] for name in detectors}
@@ -157,28 +188,35 @@ def run(frames, windows: list[range], cuts: list[int], detectors: dict) -> dict:
     config = tracking.TrackingConfig()
     rows = {}
     for name, recording in recordings.items():
-        inliers = {}
+        inliers, accuracy = {}, {}
         for gap in GAPS:
-            counts = [
-                int(
-                    tracking.match_frames(
-                        recording.features[i], recording.features[i + gap], recording.norm, config
-                    )[1].sum()
-                )
+            pairs = [
+                (i, i + gap)
                 for window in windows
                 for i in window
                 if i + gap in window and not any(i < c <= i + gap for c in cuts)
+            ]
+            counts = [
+                int(
+                    tracking.match_frames(
+                        recording.features[i], recording.features[j], recording.norm, config
+                    )[1].sum()
+                )
+                for i, j in pairs
             ]
             inliers[gap] = {
                 "mean": statistics.fmean(counts),
                 "least": min(counts),
                 "pairs": len(counts),
             }
+            if cameras is not None:
+                accuracy[gap] = pose_accuracy(recording, pairs, cameras)
         rows[name] = {
             "inliers": inliers,
             "ms_per_frame": statistics.median(times[name]),
             "track_lengths": lengths[name],
             "median_track_length": statistics.median(lengths[name]),
+            **({"pose_auc": accuracy} if accuracy else {}),
         }
     return rows
 
@@ -227,14 +265,22 @@ def parse_args() -> tuple[argparse.Namespace, list[tuple]]:
     """The command line, and ``--networks`` read by :func:`network_spec`; a bad spec is one line
     (exit 2) before minutes of reading and compiling."""
     parser = argparse.ArgumentParser(description=" ".join(__doc__.split("\n\n")[0].split()))
-    parser.add_argument("video", help="the footage (box.mp4 of opencv-doc, module docstring)")
+    parser.add_argument(
+        "video", nargs="?", help="the footage (box.mp4 of opencv-doc, module docstring)"
+    )
+    parser.add_argument(
+        "--photos",
+        help="instead of a video, render a camera's walk through a room of these photos (known"
+        " poses: the pose AUC per frame gap is reported too)",
+    )
+    parser.add_argument("--seed", type=int, default=0, help="the rendered room and path")
     parser.add_argument("--windows", type=int, default=3, help="windows of consecutive frames")
     parser.add_argument("--length", type=int, default=20, help="frames per window")
     parser.add_argument("--top", type=int, default=1000, help="points per frame, every method")
     parser.add_argument(
         "--networks",
         nargs="+",
-        default=["distilled:480-refine", "paper-refine"],
+        default=["distilled:640-refine", "paper-refine"],
         help="shipped weights by name (default: %(default)s, what `usp-jax track` runs by default"
         " and with --weights paper --network-side 0); NAME:SIDE detects on frames shrunk to"
         " SIDE px on their longer side (keypoints in the frame's pixels, matched as the others);"
@@ -251,6 +297,8 @@ def parse_args() -> tuple[argparse.Namespace, list[tuple]]:
     parser.add_argument("--json", help="write the numbers here")
     parser.add_argument("--plot", help="write the figure here (PNG)")
     args = parser.parse_args()
+    if (args.video is None) == (args.photos is None):
+        parser.error("give a video or --photos, not both")
     if args.length <= max(GAPS):  # every gap needs a pair inside a window
         parser.error(f"--length must be above the largest frame gap, {max(GAPS)}")
     try:
@@ -267,8 +315,18 @@ def parse_args() -> tuple[argparse.Namespace, list[tuple]]:
 def main() -> None:
     args, networks = parse_args()
     print(common.environment())
-    frames = read_video(args.video)
+    cameras = None
+    if args.photos:
+        try:
+            frames, cameras = rendered_path(args.photos, args.windows * args.length, args.seed)
+        except ValueError as error:
+            raise SystemExit(f"bench_video.py: error: {error}") from None
+        folder = os.path.basename(os.path.normpath(args.photos))
+        args.video = f"a walk through a room of {folder} photos (seed {args.seed})"
+    else:
+        frames = read_video(args.video)
     cuts = shot_cuts(frames)
+    # A rendered walk is cut into consecutive windows; a video's are spread over it.
     starts = np.linspace(0, len(frames) - args.length, args.windows).round().astype(int)
     windows = [range(s, s + args.length) for s in starts]
     height, width = frames[0].shape[:2]
@@ -276,7 +334,7 @@ def main() -> None:
         f"{args.video}: {len(frames)} frames {width}x{height}, shot cuts at {cuts or 'none'};"
         f" windows {', '.join(f'{w[0]}-{w[-1]}' for w in windows)}; load {os.getloadavg()[0]:.1f}"
     )
-    rows = run(frames, windows, cuts, methods(args.top, networks, args.baselines))
+    rows = run(frames, windows, cuts, methods(args.top, networks, args.baselines), cameras)
     print(
         f"{'method':20s}"
         + "".join(f"  gap {g:2d}: mean (least)" for g in GAPS)
@@ -291,6 +349,13 @@ def main() -> None:
             f"{name:20s}{gaps}  {row['median_track_length']:10g} ({p25:g}-{p75:g})"
             f"          {row['ms_per_frame']:8.0f}"
         )
+    if cameras is not None:
+        print(f"{'method':20s}" + "".join(f"  gap {g:2d}: AUC@5/10/20" for g in GAPS))
+        for name, row in rows.items():
+            cells = "".join(
+                "  " + "/".join(f"{v:.3f}" for v in row["pose_auc"][g].values()) for g in GAPS
+            )
+            print(f"{name:20s}{cells}")
     print(f"load average after: {os.getloadavg()[0]:.1f}")
     if args.json:
         with open(args.json, "w") as f:

@@ -11,6 +11,10 @@ writes
 * ``OUT/heldout/``: the whole scenes named in ``HELDOUT_SCENES``, never in train;
 * ``OUT/graf/``: ``graf1.png``, ``graf3.png`` and ``H1to3p.xml``, OpenCV's one real pair with a
   ground-truth homography, kept for evaluation only;
+* ``OUT/real-pairs/``: the pairs two real exposures made, one folder each in the layout
+  ``usp-jax evaluate --real`` reads (``usp_jax.evaluation.real_pairs``): graf (true homography),
+  aloe and skimage's motorcycle (true disparity), box, aero, books and leuven (no truth: scored by
+  inliers). No photo of these pairs is in ``train`` (``PAIR_SCENES``);
 * ``OUT/manifest.json``: every file with its origin package and version, its path there, its
   split, scene and size, plus totals.
 
@@ -94,6 +98,29 @@ OPENCV_SCENES = {
 GRAF_FILES = ("graf1.png", "graf3.png", "H1to3p.xml")
 VIDEO, VIDEO_STRIDE = "vtest.avi", 50
 MIN_SIDE = 200
+
+# The scenes of the evaluated real pairs (``REAL_PAIRS``) and the stereo-calibration views:
+# never trained on, so that the real-pair evaluation scores photos the network never saw. They are
+# not in ``heldout`` either, which keeps the synthetic held-out pairs as they were.
+PAIR_SCENES = (
+    "opencv/box",
+    "opencv/aero",
+    "opencv/books",
+    "opencv/calibration",
+    "scikit-image/motorcycle_left",
+    "scikit-image/motorcycle_right",
+)
+# name: (image 1, image 2, truth, the truth's file, RANSAC model). The files come from opencv-doc's
+# examples/data; "motorcycle" from scikit-image (its disparity map saved as .npy, inf unknown).
+REAL_PAIRS = {
+    "graf": ("graf1.png", "graf3.png", "homography", "H1to3p.xml", "homography"),
+    "aloe": ("aloeL.jpg", "aloeR.jpg", "disparity", "aloeGT.png", "fundamental"),
+    "motorcycle": ("left.png", "right.png", "disparity", "disparity.npy", "fundamental"),
+    "box": ("box.png", "box_in_scene.png", "none", None, "homography"),
+    "aero": ("aero1.jpg", "aero3.jpg", "none", None, "homography"),
+    "books": ("left.jpg", "right.jpg", "none", None, "fundamental"),
+    "leuven": ("leuvenA.jpg", "leuvenB.jpg", "none", None, "fundamental"),
+}
 
 # Fixed held-out scenes, "origin/scene": outdoor and indoor, near and far, textured and smooth.
 # Three package photos are held out too: `usp-jax demo` evaluates on them, so the demo never
@@ -190,11 +217,34 @@ def prepare_out(out: pathlib.Path, overwrite: bool) -> None:
             sys.exit(f"{out} is not empty and holds no manifest.json: choose another --out")
         if not overwrite:
             sys.exit(f"{out} already holds a corpus; pass --overwrite to rebuild it")
-        for sub in ("train", "heldout", "graf"):
+        for sub in ("train", "heldout", "graf", "real-pairs"):
             shutil.rmtree(out / sub, ignore_errors=True)
         (out / "manifest.json").unlink()
     for sub in ("train", "heldout", "graf"):
         (out / sub).mkdir(parents=True, exist_ok=True)
+
+
+def write_real_pairs(opencv_data: pathlib.Path, out: pathlib.Path) -> None:
+    """One ``pair.json`` folder per ``REAL_PAIRS`` entry under ``out``."""
+    import numpy as np
+    import skimage.data
+
+    left, right, disparity = skimage.data.stereo_motorcycle()
+    for name, (first, second, truth, truth_file, ransac) in REAL_PAIRS.items():
+        folder = out / name
+        folder.mkdir(parents=True)
+        spec = {"image1": first, "image2": second, "truth": truth, "ransac": ransac}
+        if name == "motorcycle":
+            cv2.imwrite(str(folder / first), cv2.cvtColor(left, cv2.COLOR_RGB2BGR))
+            cv2.imwrite(str(folder / second), cv2.cvtColor(right, cv2.COLOR_RGB2BGR))
+            np.save(folder / truth_file, disparity)
+        else:
+            for file in (first, second, truth_file):
+                if file is not None:
+                    shutil.copyfile(opencv_data / file, folder / file)
+        if truth_file is not None:
+            spec[truth] = truth_file
+        (folder / "pair.json").write_text(json.dumps(spec, indent=1) + "\n")
 
 
 def build(out: pathlib.Path, debs: dict[str, pathlib.Path], work: pathlib.Path) -> dict:
@@ -221,6 +271,8 @@ def build(out: pathlib.Path, debs: dict[str, pathlib.Path], work: pathlib.Path) 
         shape = images.read_image(path).shape
         if min(shape[:2]) < MIN_SIDE:
             too_small.append(inner)
+            continue
+        if scene in PAIR_SCENES:
             continue
         split = "heldout" if scene in HELDOUT_SCENES else "train"
         shutil.copyfile(path, out / split / name)
@@ -252,6 +304,7 @@ def build(out: pathlib.Path, debs: dict[str, pathlib.Path], work: pathlib.Path) 
             }
         )
 
+    write_real_pairs(root / OPENCV_DIR, out / "real-pairs")
     train_scenes = {e["scene"] for e in entries if e["split"] == "train"}
     heldout_scenes = {e["scene"] for e in entries if e["split"] == "heldout"}
     if train_scenes & heldout_scenes or heldout_scenes != set(HELDOUT_SCENES):

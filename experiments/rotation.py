@@ -16,12 +16,13 @@ Build the corpus first (``experiments/build_corpus.py``), then from the reposito
 
 Re-running a train command resumes it. The upright weights are upright detectors because their
 training homographies rarely rotate: a rotated patch must fit inside the crop, so only 4.8% of
-them turn by 20 degrees or more (``experiments/training_rotations.py``). Here every example comes
-with a square context window around its crop (``data.context_window``: the crop's diagonal, at
-the same pixel scale), branch A is the centre crop and branch B is rendered from the whole window
-(``training.step.make_window_branches``), so B shows real photo content at any angle, and the angle
-follows its distribution exactly (``homography.rotation_range``; half the pairs turn by 90
-degrees or more). Everything else is ``fast.py``'s: see there for why each setting.
+them turn by 20 degrees or more (``evaluation.analysis.training_rotations``, 4,000 draws). Here
+every example comes with a square context window around its crop (``data.context_window``: the
+crop's diagonal, at the same pixel scale), branch A is the centre crop and branch B is rendered
+from the whole window (``training.step.make_window_branches``), so B shows real photo content
+at any angle, and the angle follows its distribution exactly (``homography.rotation_range``; half
+the pairs turn by 90 degrees or more). Everything else is ``fast.py``'s: see there for why each
+setting.
 
 The same on the paper network (the default network), not yet shipped (RESULTS.md says how far
 it has run): ``paper`` is ``paper_network.py``'s stage 1 on one cosine over its stages 1-3's

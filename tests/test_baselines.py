@@ -6,7 +6,7 @@ import pytest
 import skimage.data
 from conftest import gaussian_blob
 
-from usp_jax.evaluation.baselines import available_baselines, opencv_method
+from usp_jax.inference.methods import available_baselines, opencv_method
 
 # name -> (descriptor norm, dtype, length)
 EXPECTED = {
@@ -72,8 +72,9 @@ def test_unknown_baseline_lists_the_valid_names():
 @pytest.mark.parametrize("centre", [(60.0, 50.0), (80.3, 70.6)])
 def test_opencv_sift_places_a_blob_a_quarter_pixel_right_and_below_its_centre_akaze_at_it(centre):
     # OpenCV's SIFT detects on its input enlarged 2x and halves the coordinates without the
-    # half-pixel shift of pixel centres: its points sit ~0.25 px right and below (RESULTS, "Any
-    # rotation": on resized pairs this cancels the protocol's own -0.25 px, on native ones not).
+    # half-pixel shift of pixel centres: its points sit ~0.25 px right and below (experiments/
+    # notes/choices.md: on resized pairs this cancels the protocol's own -0.25 px, on native ones
+    # not).
     image = gaussian_blob(centre, (120, 160), sigma=4.0)
     found = {}
     for name in ("sift", "akaze"):

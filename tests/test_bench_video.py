@@ -6,7 +6,7 @@ import cv2
 import numpy as np
 import pytest
 
-from usp_jax.evaluation.baselines import opencv_method
+from usp_jax.inference.methods import opencv_method
 
 BENCHMARKS = pathlib.Path(__file__).resolve().parents[1] / "benchmarks"
 
@@ -66,3 +66,28 @@ def test_a_bad_method_is_one_line_before_the_video_is_read(
         bench_video.main()
     error = capsys.readouterr().err.strip().splitlines()
     assert exit_info.value.code == 2 and message in error[-1], error
+
+
+def test_pose_accuracy_of_exact_matches_along_a_camera_path_is_one(bench_video):
+    from usp_jax.evaluation import scenes
+    from usp_jax.inference.features import Features
+
+    room = scenes.Scene((), np.array([1.0, 1, 1]), np.array([3.0, 3, 1.5]), np.zeros((0, 2, 2)))
+    cameras = scenes.camera_path(room, 6, height=120, width=160, seed=0)
+    points = np.random.default_rng(0).uniform((-5, -5, 0), (9, 9, 3), (400, 3))
+
+    class Recording:
+        norm = cv2.NORM_L2
+        features = {}
+
+    for index, camera in enumerate(cameras):
+        pixels, depth = scenes.project(points, camera)
+        # Points behind the camera get no descriptor match: a unique code per point and side.
+        codes = np.eye(800, dtype=np.float32)[np.arange(400) + 400 * (depth < 0)]
+        Recording.features[index] = Features(pixels.astype(np.float32), np.ones(400), codes)
+    accuracy = bench_video.pose_accuracy(Recording, [(0, 5), (1, 3)], cameras)
+    assert accuracy == {
+        "5": pytest.approx(1, abs=1e-3),
+        "10": pytest.approx(1, abs=1e-3),
+        "20": pytest.approx(1, abs=1e-3),
+    }

@@ -13,8 +13,8 @@ import skimage.data
 from conftest import gaussian_blob
 
 from usp_jax import evaluation as ev
-from usp_jax.evaluation.baselines import opencv_method
 from usp_jax.inference import nms
+from usp_jax.inference.methods import opencv_method
 
 SHAPE = (64, 64)
 EYE = np.eye(3)
@@ -240,7 +240,7 @@ def test_resize_pair_adapts_homography_per_image():
 def test_resize_pairs_homography_is_a_quarter_pixel_off_cv2_resize_at_half_size():
     # The protocol (KP2D) scales about pixel (0, 0); cv2.resize about the corner (-0.5, -0.5). At
     # half size a point lands 0.25 px up and left of where H' puts it, in both images: on rotated
-    # pairs that no longer cancels (RESULTS, "Any rotation").
+    # pairs that no longer cancels (experiments/notes/choices.md, "Resizing and turned pairs").
     centre = np.array([301.0, 203.0])
     image = gaussian_blob(centre, (480, 640), sigma=6.0)
     small, _, _ = ev.resize_pair(image, image, np.eye(3), 240, 320)
@@ -253,7 +253,7 @@ def test_resize_pairs_homography_is_a_quarter_pixel_off_cv2_resize_at_half_size(
 
 def test_modules_do_not_import_jax():
     root = Path(ev.__file__).parent
-    for name in ("protocol.py", "metrics.py", "sequences.py", "baselines.py", "plotting.py"):
+    for name in ("protocol.py", "metrics.py", "sequences.py", "plotting.py"):
         tree = ast.parse((root / name).read_text())
         imported = [a.name for n in ast.walk(tree) if isinstance(n, ast.Import) for a in n.names]
         imported += [n.module for n in ast.walk(tree) if isinstance(n, ast.ImportFrom) and n.module]

@@ -252,22 +252,6 @@ def test_the_lighting_stage_adds_gamma_and_wider_intensity_changes_and_changes_n
     )
 
 
-def test_the_zoom_fine_tune_widens_the_scale_range_of_the_shipped_weights_last_stage():
-    import dataclasses
-
-    stage10, zoom = recipe("paper_network.py:stage10"), recipe("zoom.py")
-    assert (zoom.homography.scaling, stage10.homography.scaling) == (0.4, 0.2)
-    # A patch scaled past the crop needs the context window to render B from.
-    assert zoom.data.context_window and not stage10.data.context_window
-    assert dataclasses.replace(zoom.homography, scaling=0.2) == stage10.homography
-    assert (zoom.model, zoom.loss, zoom.photometric) == (
-        stage10.model,
-        stage10.loss,
-        stage10.photometric,
-    )
-    assert zoom.seed not in {recipe(f"paper_network.py:{n}").seed for n in LATER_STAGES}
-
-
 def test_each_stage_has_its_own_seed_so_it_sees_other_crops_and_homographies():
 
     names = ("get_config", *LATER_STAGES)
@@ -699,7 +683,7 @@ def test_the_rotation_config_is_the_fast_recipe_turned_over_the_full_circle():
         assert cfg.model == base.model == config_lib.paper().model and cfg.data.context_window
         assert (cfg.data.height, cfg.data.width) == size and cfg.loss == base.loss
         assert cfg.homography == stages[0].homography and cfg.photometric.gamma == 0.5
-    # Measured with 4,000 draws (training_rotations.py): half the pairs turn by 90 degrees or more.
+    # Measured with 4,000 draws (analysis.training_rotations): half the pairs turn by 90 degrees or more.
     angles = analysis.training_rotations(
         stages[0].homography, 128, 160, draws=400, window=stages[0].data.example_shape[:2]
     )

@@ -2,6 +2,7 @@
 (docs/modules.md), and no module outgrows one concept."""
 
 import ast
+import graphlib
 import pathlib
 import subprocess
 import sys
@@ -80,3 +81,35 @@ def test_no_module_is_over_500_lines():
         if (n := len(p.read_text().splitlines())) > 500
     }
     assert long == {}
+
+
+def test_no_modules_import_each_other_in_a_circle():
+    """Every import counts, a deferred one inside a function too (it still ties the modules);
+    package facades (``__init__``) re-export and are left out."""
+    modules = {
+        ".".join(("usp_jax", *p.relative_to(PACKAGE).with_suffix("").parts)): p
+        for p in PACKAGE.rglob("*.py")
+        if p.stem != "__init__"
+    }
+    graph = {name: _imports(path) & modules.keys() for name, path in modules.items()}
+    try:
+        graphlib.TopologicalSorter(graph).prepare()
+        circle = []
+    except graphlib.CycleError as err:
+        circle = err.args[1]
+    assert circle == []
+
+
+# Functions allowed past the limit until they are split (remove an entry once it is).
+LONG_FUNCTIONS_BEING_SPLIT = {"evaluation/pairs.py:make_pairs"}
+
+
+def test_no_library_function_is_over_80_lines():
+    long = {
+        f"{path.relative_to(PACKAGE)}:{node.name}": node.end_lineno - node.lineno + 1
+        for path in PACKAGE.rglob("*.py")
+        for node in ast.walk(ast.parse(path.read_text()))
+        if isinstance(node, ast.FunctionDef | ast.AsyncFunctionDef)
+        and node.end_lineno - node.lineno + 1 > 80
+    }
+    assert set(long) <= LONG_FUNCTIONS_BEING_SPLIT, long

@@ -217,7 +217,7 @@ def test_fast_network_is_translation_equivariant_in_whole_cells_away_from_the_bo
     # Content shifted by one cell gives the same scores, positions and descriptors one cell over,
     # wherever the receptive field (about 60 px with the heads) sees no padding. An earlier
     # version with a 1/16 level failed this and learned descriptors of where a cell sits in the
-    # crop instead of what it shows (experiments/RESULTS.md, "The fast network").
+    # crop instead of what it shows (experiments/notes/choices.md, "The fast network").
     big = jax.random.uniform(jax.random.PRNGKey(8), (1, 168, 200, 3))
     a, b = apply(SMALL_FAST, big[:, :160, :192]), apply(SMALL_FAST, big[:, 8:, 8:])
     margin = 8  # cells: 64 px, more than the receptive field's radius

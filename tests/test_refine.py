@@ -1,12 +1,14 @@
 """The sub-pixel refinement stage (``inference.refine``) and its place in the compiled detector."""
 
+import cv2
 import jax
+import jax.numpy as jnp
 import numpy as np
 import pytest
 from conftest import SMALL_MODEL, gaussian_blob
 
 from usp_jax.core.model import init_variables
-from usp_jax.inference import Detector, refine
+from usp_jax.inference import Detector, nms, refine
 
 
 @pytest.fixture(scope="module")
@@ -79,7 +81,7 @@ def test_the_shipped_refinement_follows_a_sub_pixel_shift_the_raw_start_misses()
     assert np.linalg.norm(shift) == pytest.approx(0.5)  # the raw starts' error
     assert np.abs(found[1] - found[0] - shift).max() < 0.25  # shipped: 0.21 (first one: 0.14)
     # Every start, one spot: within 0.30 px of it (the first, shallower network: 0.16; the
-    # deeper one places real photos' points 5% better, RESULTS).
+    # deeper one places real photos' points 5% better, experiments/notes/choices.md).
     assert np.abs(found[0] - found[0].mean(axis=0)).max() < 0.35
 
 
@@ -241,3 +243,29 @@ def test_a_file_that_is_not_an_offset_network_is_refused(tmp_path):
     refine.save_params(tmp_path / "broken.npz", params)
     with pytest.raises(ValueError, match="does not hold"):
         refine.load_params(tmp_path / "broken.npz")
+
+
+def _closest_pair(keypoints: np.ndarray) -> float:
+    distance = np.linalg.norm(keypoints[:, None] - keypoints[None], axis=-1)
+    return float(distance[np.triu_indices(len(keypoints), 1)].min())
+
+
+@pytest.mark.parametrize("top_n", [None, 500])
+def test_refined_points_never_stack(photo, top_n):
+    # On a real photo the shipped refinement carries neighbouring cells' points onto one corner
+    # (189 pairs within 1 px of 1,200 points at 240x320 before the detector merged them).
+    image = cv2.resize(photo, (320, 240), interpolation=cv2.INTER_AREA)
+    found = Detector.pretrained(top_n=top_n).detect(image)
+    assert _closest_pair(found.keypoints) > refine.DUPLICATE_RADIUS
+    raw = Detector.pretrained(top_n=top_n, refine=False).detect(image)
+    assert len(raw.scores) - len(found.scores) < 0.2 * len(raw.scores)  # merged, not thinned
+
+
+@pytest.mark.parametrize("slack, kept", [(0.0, 2), (refine.REACH, 1)])
+def test_nms_reaches_refined_points_that_left_their_cells(slack, kept):
+    # Cells 0 and 2 of one row: their points, moved half a cell towards each other, are 1 px
+    # apart. Only an NMS that knows points may leave their cells by REACH compares them.
+    keypoints = jnp.array([[11.5, 3.0], [-1.0, -1.0], [12.5, 3.0]])
+    valid = jnp.array([True, False, True])
+    keep = nms.radius_nms(keypoints, jnp.array([0.9, 0.0, 0.8]), valid, 1, 3, 2.0, slack=slack)
+    assert int(keep.sum()) == kept and bool(keep[0])

@@ -44,7 +44,14 @@ def test_every_package_name_a_script_uses_exists(script):
     fails only when run, after minutes of work; this finds it at once."""
     tree = ast.parse(script.read_text())
     modules = package_names(tree)
-    missing = []
+    missing = [
+        f"{node.module}.{alias.name} (line {node.lineno})"
+        for node in ast.walk(tree)
+        if isinstance(node, ast.ImportFrom) and (node.module or "").startswith("usp_jax")
+        for alias in node.names
+        if not _is_module(f"{node.module}.{alias.name}")
+        and not hasattr(importlib.import_module(node.module), alias.name)
+    ]
     for node in ast.walk(tree):
         if isinstance(node, ast.Attribute) and isinstance(node.value, ast.Name):
             module = modules.get(node.value.id)

@@ -10,10 +10,10 @@ import numpy as np
 import pytest
 
 from usp_jax.cli import main
-from usp_jax.evaluation.baselines import opencv_method
 from usp_jax.inference import tracking
 from usp_jax.inference.detector import Detector
 from usp_jax.inference.features import Features
+from usp_jax.inference.methods import opencv_method
 
 SIZE = (96, 128)  # (height, width) of the test frames
 STEPS = 6
@@ -181,8 +181,55 @@ def test_cli_tracks_a_tiny_video_into_json_tracks_and_an_annotated_video(
     capture = cv2.VideoCapture(str(out))
     assert int(capture.get(cv2.CAP_PROP_FRAME_COUNT)) == STEPS
     assert sorted(p.name for p in tmp_path.iterdir()) == sorted(
-        ["tiny.avi", "out.avi", "t.json", "tracks.csv"]
+        ["tiny.avi", "out.avi", "t.json", "t.npz", "tracks.csv"]
     )
+    # Beside the JSON, every frame's points again with their scores and descriptors.
+    saved = tracking.load_features(tmp_path / "t.npz")
+    assert document["features"] == "t.npz" and len(saved) == STEPS
+    for frame, record in zip(saved, document["frames"], strict=True):
+        assert np.allclose(frame["points"], record["points"], atol=0.005)
+        assert frame["track_ids"].tolist() == record["track_ids"]
+        assert len(frame["scores"]) == len(frame["descriptors"]) == len(record["points"])
+
+
+@pytest.mark.parametrize("method", ["SIFT", "ORB"])
+def test_features_file_round_trip_keeps_points_scores_ids_and_descriptors(frames, tmp_path, method):
+    results = list(tracking.track(frames[:3], opencv_method(method, 100)))
+    tracking.save_features(tmp_path / "f.npz", results)
+    loaded = tracking.load_features(tmp_path / "f.npz")
+    assert [f["index"] for f in loaded] == [r.index for r in results]
+    for frame, result in zip(loaded, results, strict=True):
+        assert np.array_equal(frame["points"], result.points)
+        assert np.array_equal(frame["scores"], result.scores)
+        assert np.array_equal(frame["track_ids"], result.track_ids)
+        if method == "ORB":  # binary descriptors: their bytes, exactly
+            assert np.array_equal(frame["descriptors"], result.descriptors)
+        else:  # float descriptors as float16
+            assert frame["descriptors"].dtype == np.float16
+            assert np.allclose(frame["descriptors"], result.descriptors, rtol=1e-3, atol=1e-3)
+
+
+def test_camera_motion_is_the_median_inlier_step_and_zero_for_a_still_camera(frames):
+    moving = list(tracking.track(frames[:4], opencv_method("SIFT", 200)))
+    still = list(tracking.track([frames[0]] * 4, opencv_method("SIFT", 200)))
+    # Per frame: the pan's 2.9 px plus up to 4 px of the turn at the corners.
+    assert 2.5 < tracking.camera_motion(moving) < 5.0
+    assert tracking.camera_motion(still) < 0.01 < tracking.STATIC_MOTION
+    assert tracking.camera_motion(moving[:1]) is None
+
+
+@pytest.mark.parametrize("still", [True, False])
+def test_cli_warns_when_the_camera_does_not_move(frames, tmp_path, capsys, still):
+    _write_video(source := tmp_path / "tiny.avi", [frames[0]] * 4 if still else frames[:4])
+    assert main(["track", str(source), "--method", "sift", "--no-progress"]) == 0
+    err = capsys.readouterr().err
+    assert ("warning: the camera does not move" in err) == still
+
+
+def test_cli_progress_bar_names_the_source_and_method(frames, tmp_path, capsys):
+    _write_video(source := tmp_path / "tiny.avi", frames[:3])
+    assert main(["track", str(source), "--method", "orb"]) == 0
+    assert "tracking tiny.avi (orb)" in capsys.readouterr().err
 
 
 @pytest.mark.parametrize(
@@ -192,7 +239,7 @@ def test_cli_tracks_a_tiny_video_into_json_tracks_and_an_annotated_video(
         (["--weights", "paper", "--network-side", "0"], ("paper", 0, False)),
     ],
 )
-def test_cli_network_defaults_to_the_distilled_weights_at_480_px(
+def test_cli_network_defaults_to_the_distilled_weights_at_640_px(
     frames, tmp_path, monkeypatch, options, expected
 ):
     """``track``'s own default is the real-time one (``tracking.default_detector``), not the
@@ -234,6 +281,7 @@ def _bad_inputs(tmp_path, frames):
     (tmp_path / "garbage.avi").write_bytes(np.random.default_rng(0).bytes(4000))
     (no_frames := tmp_path / "no_frames").mkdir()
     (no_frames / "notes.txt").write_text("no images here")
+    _write_video(tmp_path / "one.avi", frames[:1])
     (sizes := tmp_path / "sizes").mkdir()
     for k, frame in enumerate([frames[0], frames[1], frames[2][:, :-8]]):
         cv2.imwrite(str(sizes / f"{k}.png"), frame)
@@ -241,6 +289,7 @@ def _bad_inputs(tmp_path, frames):
         "an empty video": ([str(tmp_path / "empty.avi")], "no frame can be read"),
         "an unreadable video": ([str(tmp_path / "garbage.avi")], "no frame can be read"),
         "a missing video": ([str(tmp_path / "missing.avi")], "does not exist"),
+        "a video with one frame": ([str(tmp_path / "one.avi")], "1 frame tracked"),
         "a missing camera": (["9"], "camera 9 cannot be opened"),
         "a folder with no frames": ([str(no_frames)], "folder has no frames"),
         "frames of changing size": ([str(sizes)], "frame 2 has shape"),
@@ -263,6 +312,7 @@ def _bad_inputs(tmp_path, frames):
         "an empty video",
         "an unreadable video",
         "a missing video",
+        "a video with one frame",
         "a missing camera",
         "a folder with no frames",
         "frames of changing size",
@@ -286,3 +336,11 @@ def test_bad_input_is_one_line_exit_2_and_writes_nothing(frames, tmp_path, capsy
     assert err[0].startswith("usp-jax track: error: ")
     assert list(outputs.iterdir()) == []  # not even a partial file
     assert sorted(p.name for p in tmp_path.rglob("*") if p != outputs) == before
+
+
+def test_a_json_named_npz_is_refused_before_tracking(frames, tmp_path, capsys):
+    _write_video(source := tmp_path / "tiny.avi", frames[:2])
+    code = main(["track", str(source), "--method", "orb", "--json", str(tmp_path / "t.npz")])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and len(err) == 1 and "name the JSON file .json" in err[0]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["tiny.avi"]

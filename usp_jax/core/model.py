@@ -46,7 +46,7 @@ class ModelConfig:
     descriptor_head_channels: int = 0
     # Kernel side of that hidden conv (the paper's: 3). The fast network's is 1: its output conv
     # is 3x3 already, a 3x3 hidden conv would add 0.27 GFLOP (14%), and at 1,500 steps it
-    # matched translated crops no better (experiments/RESULTS.md, "The fast network").
+    # matched translated crops no better (experiments/notes/choices.md, "The fast network").
     descriptor_head_kernel: int = 3
     # C1-C4 of the paper's Table 1 sample the descriptor map at the predicted position; C0 reads
     # the coarse entry of the cell.
@@ -276,7 +276,7 @@ class FastBackbone(nn.Module):
     most cells are far from any border, the descriptors collapsed (mean cosine between cells of
     one image 0.46 at 480x640) and held-out viewpoint pairs matched at MS 0.05. The receptive
     field here is the paper network's (about 100 px) and the outputs are exactly
-    translation-equivariant in steps of one cell away from the border (experiments/RESULTS.md,
+    translation-equivariant in steps of one cell away from the border (experiments/notes/choices.md,
     "The fast network").
 
     images [B, H, W, 3] (normalised) -> (full [B, H, W, c1], cells [B, H/8, W/8, c8]): the

@@ -1,5 +1,6 @@
-"""Judging detectors: the HPatches protocol and its metrics, the OpenCV baselines, pairs made
-from any photos, the speed benchmark, figures, and the statistics that compare evaluations.
+"""Judging detectors: the HPatches protocol and its metrics against the baselines
+(``inference.methods``), pairs made from any photos, the speed benchmark, figures, and the
+statistics that compare evaluations.
 
 ``usp_jax.evaluation.evaluate`` and the other names below are the protocol's public API.
 """
@@ -23,10 +24,8 @@ from usp_jax.evaluation.protocol import (
     METRICS,
     SPLITS,
     EvalConfig,
-    Method,
     PairResult,
     Results,
-    as_method,
     detect,
     detect_both,
     evaluate,
@@ -54,6 +53,7 @@ from usp_jax.inference.matching import (
     estimate_homography,
     match_and_estimate,
 )
+from usp_jax.inference.methods import Method, as_method, baseline_method
 
 __all__ = [
     "CORRECT_DISTANCE",
@@ -72,6 +72,7 @@ __all__ = [
     "PairResult",
     "Results",
     "as_method",
+    "baseline_method",
     "corner_error",
     "detect",
     "detect_both",

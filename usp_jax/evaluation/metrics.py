@@ -198,7 +198,7 @@ def reordered_corner_errors(
     function of the order the matches come in, one draw from RANSAC's distribution; with
     points a pixel or so off it is a lottery near the tolerance (on one rotated held-out pair the
     protocol's order missed by 4.4 px where 29 of 30 random orders were within 3 px;
-    experiments/RESULTS.md, "Any rotation").
+    experiments/notes/choices.md, "RANSAC's draw").
     The share of orders within eps estimates the chance that RANSAC finds the homography that
     well, with less noise than the protocol's single draw."""
     rng = np.random.default_rng(ORDER_SEED)

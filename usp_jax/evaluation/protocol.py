@@ -2,15 +2,15 @@
 same code path (read, resize, detect, the same radius NMS, then the metrics of
 :mod:`usp_jax.evaluation.metrics`), aggregated as the paper's tables.
 
-A :class:`Method` is any detector: a classical one from :mod:`usp_jax.evaluation.baselines` or a
-``Detector`` wrapped by :func:`as_method`.
+A :class:`~usp_jax.inference.methods.Method` is any detector: a classical one or XFeat
+(``methods.baseline_method``) or a ``Detector`` wrapped by ``methods.as_method``.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import math
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from pathlib import Path
 from typing import NamedTuple
 
@@ -29,52 +29,16 @@ from usp_jax.evaluation.metrics import (
     take,
 )
 from usp_jax.evaluation.sequences import Pair, read_pair, resize_pair, scan_sequences
-from usp_jax.inference import turning
 from usp_jax.inference.detector import Detector
 from usp_jax.inference.features import Features
 from usp_jax.inference.matching import matched_points
+from usp_jax.inference.methods import Method, as_method, baseline_method
 from usp_jax.inference.nms import radius_nms_host
 
 # Section order of the tables: every pair, then HPatches' illumination and viewpoint splits.
 SPLITS = ("i", "v", "other")
 METRICS = ("rs", "le", "ha1", "ha3", "ha5", "ms")
 _HEADERS = ("RS", "LE", "HA e=1", "HA e=3", "HA e=5", "MS")
-
-
-@dataclasses.dataclass(frozen=True)
-class Method:
-    """A detector under evaluation: ``detect(uint8 [H, W, 3] RGB) -> Features``.
-
-    ``norm`` is the descriptor distance, ``cv2.NORM_L2`` for float descriptors or
-    ``cv2.NORM_HAMMING`` for binary ones (ORB, AKAZE, BRISK). ``detect_pair(image1, image2) ->
-    (features1, features2)``, when given, replaces ``detect`` for a method that looks at both
-    images before it describes them (matching across any rotation, ``inference.turning``).
-    """
-
-    name: str
-    detect: Callable[[np.ndarray], Features]
-    norm: int = cv2.NORM_L2
-    detect_pair: Callable[[np.ndarray, np.ndarray], tuple[Features, Features]] | None = None
-
-
-def as_method(
-    detector: Detector, name: str = "UnsuperPoint", guide: Detector | None = None
-) -> Method:
-    """The detector as an evaluation Method (L2 descriptors) returning ALL its candidate points:
-    the evaluation applies NMS and top-k to every method alike, so ``detector``'s ``top_n``,
-    ``nms_radius`` and ``border`` are not used (its ``upsample``, ``any_scale`` and ``refine``
-    are).
-
-    With a rotation-invariant ``guide`` the method matches across any rotation: image 2 is
-    detected turned back by the angle the guide estimates (``turning.detect_pair``)."""
-    every_point = detector.replace(top_n=None, nms_radius=0, border=0, max_side=0)
-    if guide is None:
-        return Method(name, every_point.detect, cv2.NORM_L2)
-
-    def detect_pair(image1: np.ndarray, image2: np.ndarray) -> tuple[Features, Features]:
-        return turning.detect_pair(every_point, guide, image1, image2)[:2]
-
-    return Method(name, every_point.detect, cv2.NORM_L2, detect_pair)
 
 
 def methods(
@@ -84,15 +48,13 @@ def methods(
     guide: Detector | None = None,
 ) -> list[Method]:
     """The methods of one evaluation: ``detector`` (if any, :func:`as_method`, with ``guide``) and
-    the named ``baselines`` (OpenCV's, or "xfeat": ``baselines.baseline_method``), in that order,
+    the named ``baselines`` (OpenCV's, or "xfeat": ``methods.baseline_method``), in that order,
     for a protocol keeping ``top_k`` points.
 
     The evaluation applies NMS and the shared-view filter before its own top-k, to
     UnsuperPoint's full candidate set; a baseline cut at exactly top-k before them would be left
     with fewer points than the model on every viewpoint pair, so each keeps 4 ``top_k``.
     """
-    from usp_jax.evaluation.baselines import baseline_method
-
     found = [as_method(detector, guide=guide)] if detector is not None else []
     return found + [baseline_method(name, 4 * top_k) for name in baselines]
 

@@ -192,8 +192,9 @@ def resize_pair(
     at half size), in both images. The protocol keeps that offset (KP2D's numbers have it). On
     upright pairs it nearly cancels; on a pair turned by an angle a it moves each method's
     homography by ``(I - R(a)) @ (0.25, 0.25)``, up to 0.7 px at 180 degrees, except OpenCV
-    SIFT's, whose points carry an opposite +0.25 px offset of their own (experiments/RESULTS.md,
-    "Any rotation"). Pairs made at the evaluated size need no resizing and have no such offset.
+    SIFT's, whose points carry an opposite +0.25 px offset of their own
+    (experiments/notes/choices.md, "Resizing and turned pairs"). Pairs made at the evaluated size
+    need no resizing and have no such offset.
 
     Returns the two resized uint8 images and H' (float64 [3, 3]).
     """

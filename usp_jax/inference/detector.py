@@ -59,27 +59,31 @@ def _select_points(
     nms_radius: float,
     border: float,
     cell: float,
+    valid: jax.Array | None = None,
+    slack: float = 0.0,
 ) -> tuple[jax.Array, ...]:
     """Drop padding/border points, NMS, top-N: keypoints [B, M, 2] and scores [B, M] ->
     keypoints [B, K, 2], scores [B, K] sorted descending, the order [B, K] they were taken in
     (indices into M) and counts [B]: only the first counts[b] entries of image b are points.
 
     sizes: int32 [B, 2] (height, width) of each image before padding, in the keypoints' pixels;
-    ``cell``: a cell's side in those pixels (:func:`radius_nms`, which needs the M points on
-    the cells_h x cells_w grid; without NMS any M will do). A point is kept when it is at least
-    ``border`` px from the image edges, which lie at -0.5 and size - 0.5 in pixel-centre
-    coordinates.
+    ``cell``: a cell's side in those pixels and ``slack`` how far a point may have left its cell
+    (:func:`radius_nms`, which needs the M points on the cells_h x cells_w grid; without NMS any
+    M will do); ``valid`` [B, M] marks the candidates at all (None: every one). A point is kept
+    when it is at least ``border`` px from the image edges, which lie at -0.5 and size - 0.5 in
+    pixel-centre coordinates.
     """
     keep = points.inside(keypoints, sizes[:, None, ::-1], border)
+    keep = keep if valid is None else keep & valid
     m = scores.shape[-1]
     k = m if top_n is None else min(top_n, m)
     if nms_radius > 0:
         # Past the neighbourhood the greedy loop runs, which may stop at the k kept points the
         # top-k cut below takes anyway.
-        greedy = int(nms_radius // cell) + 1 > NEIGHBOUR_REACH
+        greedy = int((nms_radius + 2 * slack) // cell) + 1 > NEIGHBOUR_REACH
         limit = k if greedy and top_n is not None else None
-        keep = jax.vmap(radius_nms, in_axes=(0, 0, 0, None, None, None, None, None))(
-            keypoints, scores, keep, cells_h, cells_w, nms_radius, cell, limit
+        keep = jax.vmap(radius_nms, in_axes=(0, 0, 0, None, None, None, None, None, None))(
+            keypoints, scores, keep, cells_h, cells_w, nms_radius, cell, limit, slack
         )
     ranked, order = jax.lax.top_k(jnp.where(keep, scores, -jnp.inf), k)
     counts = jnp.minimum(jnp.sum(keep, axis=-1), k)
@@ -145,22 +149,15 @@ def _detect_padded(
     keypoints, scores = predictions.keypoints, predictions.scores
     # What the kept points' descriptors come from: their anchors, or the model's descriptors.
     carried = anchors if sparse else predictions.descriptors
+    valid, slack = None, 0.0
     if refiner is not None:
-        edges = refine_lib.edge_cells(cells_h, cells_w, border, upsample)
-        count = refine_lib.refined_count(cells_h * cells_w, edges, top_n, nms_radius)
-        if count < cells_h * cells_w:
-            # The points a move of up to REACH can bring inside, strongest first.
-            reach = refine_lib.REACH / upsample
-            possible = points.inside(
-                points.to_input(keypoints, upsample), sizes[:, None, ::-1], border - reach
-            )
-            _, order = jax.lax.top_k(jnp.where(possible, scores, -jnp.inf), count)
-            keypoints, scores, carried = (
-                points.take(x, order) for x in (keypoints, scores, carried)
-            )
-        # In the network's pixels, where the offsets were learned (inference.refine).
-        keypoints, factors = refine_lib.refine_keypoints(refiner, pixels, keypoints)
-        scores = scores * factors
+        keypoints, scores, valid = refine_lib.refine_on_grid(
+            refiner, pixels, keypoints, scores, sizes, top_n, nms_radius, border, upsample
+        )
+        # Moves carry points out of their cells; neighbours that converge on one corner are one
+        # point, whatever NMS the caller asked for.
+        slack = refine_lib.REACH / upsample
+        nms_radius = max(nms_radius, refine_lib.DUPLICATE_RADIUS)
     keypoints, ranked, order, counts = _select_points(
         points.to_input(keypoints, upsample),
         scores,
@@ -171,6 +168,8 @@ def _detect_padded(
         nms_radius,
         border,
         CELL / upsample,
+        valid,
+        slack,
     )
     carried = points.take(carried, order)
     if sparse:

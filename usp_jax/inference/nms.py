@@ -56,6 +56,7 @@ def radius_nms(
     radius: float,
     cell: float = CELL,
     limit: int | None = None,
+    slack: float = 0.0,
 ) -> jax.Array:
     """Greedy radius NMS of one image's M candidates (one per cell), the paper's "NMS = 4".
 
@@ -66,9 +67,11 @@ def radius_nms(
     top-N cut after NMS, N). Raises ValueError for a radius that is negative, NaN or infinite.
 
     ``cell`` is a cell's side in the keypoints' pixels (8; 8 / s for a network run on the image
-    enlarged s times). A point stays inside its cell, so points d cells apart are at least
-    ``cell * (d - 1)`` px apart and only cells within ``floor(radius / cell) + 1`` can interact
-    (3x3 cells for radius 4 at 8 px), never more than the grid. Up to ``NEIGHBOUR_REACH`` cells
+    enlarged s times). A point stays within ``slack`` px of its cell (0 for the network's
+    points; a refined point moves up to ``refine.REACH``), so points d cells apart are at least
+    ``cell * (d - 1) - 2 slack`` px apart and only cells within
+    ``floor((radius + 2 slack) / cell) + 1`` can interact (3x3 cells for radius 4 at 8 px
+    without slack), never more than the grid. Up to ``NEIGHBOUR_REACH`` cells
     each way, every cell is compared with those neighbours at once, and the greedy result is the
     unique fixed point of ``keep_i = valid_i and no kept stronger neighbour``: iterating that
     map from ``keep = valid`` settles one more level of the dependency chain per step, so the
@@ -80,7 +83,7 @@ def radius_nms(
     if not (math.isfinite(radius) and radius >= 0):
         raise ValueError(f"NMS radius must be a finite number >= 0, got {radius}")
     m = scores.shape[0]
-    reach = min(int(radius // cell) + 1, max(cells_h, cells_w) - 1)
+    reach = min(int((radius + 2 * slack) // cell) + 1, max(cells_h, cells_w) - 1)
     if reach < 1:  # a single cell: nothing to suppress
         return (
             jnp.asarray(valid, bool)

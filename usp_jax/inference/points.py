@@ -15,7 +15,7 @@ import jax.numpy as jnp
 #: while N is at most this share of its candidates; for more, the whole descriptor map costs
 #: less. At 240x320 (1,200 cells) and 300 points that saved 3.8% of `paper`'s time and 4.1% of
 #: `distilled`'s (6.6% with the pyramid); for all 1,200 points `paper` was level and
-#: `distilled` 18% slower (experiments/RESULTS.md).
+#: `distilled` 18% slower (experiments/notes/choices.md).
 SPARSE_SHARE = 0.25
 
 

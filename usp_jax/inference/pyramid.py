@@ -41,7 +41,7 @@ STEP = 1 / math.sqrt(2)
 MIN_SIDE = 64
 #: ``refine.SPREAD_WEIGHT`` for the pyramid's points: three times the single-scale one. With
 #: a point's copies on several levels to choose from, ranking the better placed ones first
-#: raised HA@3 on the zoomed design pairs from 0.660 to 0.729 (experiments/RESULTS.md).
+#: raised HA@3 on the zoomed design pairs from 0.660 to 0.729 (experiments/notes/choices.md).
 SPREAD_WEIGHT = 0.3
 
 

@@ -20,7 +20,7 @@ The move also says how sure it is: the spread of the softmax over the window,
 many do (an edge, a blob). A refined point's score is the network's times ``exp(-w v)`` (``w`` =
 ``SPREAD_WEIGHT``), so that of two equally scored points the better localised is kept: on the
 design pairs (training photos) that lowered LE by 0.06 px and raised HA@1 by 0.05
-(experiments/RESULTS.md).
+(experiments/notes/choices.md).
 
 Training is label-free (``experiments/refine_offsets.py``): for a point p_A of image A and the
 point p_B the frozen detector finds at its correspondent in B = H(A), minimise the paper's
@@ -45,9 +45,14 @@ import jax.numpy as jnp
 import numpy as np
 
 from usp_jax.core.model import CELL
+from usp_jax.inference import points
 
 #: Largest move per axis, in the network's pixels: half a cell.
 REACH = CELL // 2
+#: Refined points of neighbouring cells often converge on one corner (135 pairs of 500 points
+#: within 0.5 px on a real photo); the detector keeps the stronger of any two closer than this
+#: (input px), as an NMS of this radius on the refined points.
+DUPLICATE_RADIUS = 1.0
 #: Channels of the shipped network's hidden 3x3 convolutions. Other widths and depths load from
 #: their weights (:func:`channels_of`); every convolution is valid, so each trims a pixel a side.
 CHANNELS = (16, 16, 16)
@@ -206,7 +211,7 @@ def refined_count(candidates: int, edges: int, top_n: int | None, nms_radius: fl
     a move decides); all of them where NMS (which sees the moved points) or no top-N cut needs
     them. With scores that the moves leave alone (``SPREAD_WEIGHT`` 0) the output equals
     refining all of them; with the spread, the N kept are the best re-scored of those, which on
-    the design pairs placed points as well as refining all (experiments/RESULTS.md)."""
+    the design pairs placed points as well as refining all (experiments/notes/choices.md)."""
     if top_n is None or nms_radius > 0:
         return candidates
     return min(candidates, top_n + edges)
@@ -220,6 +225,47 @@ def refine_keypoints(
     are multiplied by (:func:`patch_moves`), per image."""
     shifts, factors = jax.vmap(moves, in_axes=(None, 0, 0))(params, grey(pixels), keypoints)
     return keypoints + shifts, factors
+
+
+def refine_on_grid(
+    refiner: dict,
+    pixels: jax.Array,
+    keypoints: jax.Array,
+    scores: jax.Array,
+    sizes: jax.Array,
+    top_n: int | None,
+    nms_radius: float,
+    border: float,
+    upsample: int,
+) -> tuple[jax.Array, jax.Array, jax.Array | None]:
+    """The refined keypoints [B, M, 2] (network pixels) and scores [B, M] (times the certainty
+    of their moves, ``refine.patch_moves``) on the network's grid, and which were refined [B, M]
+    (None: all). Without NMS only the strongest ``refine.refined_count`` points that a move can
+    bring inside are refined (501 of 1,200 at 240x320 / 300); the others stay in their cells,
+    marked invalid, so that NMS still finds every point's neighbours by cell."""
+    # The network's input is the image enlarged upsample times: one cell per CELL of its pixels.
+    cells_h, cells_w = (side // CELL for side in pixels.shape[1:3])
+    edges = edge_cells(cells_h, cells_w, border, upsample)
+    count = refined_count(cells_h * cells_w, edges, top_n, nms_radius)
+    if count == cells_h * cells_w:
+        # In the network's pixels, where the offsets were learned (inference.refine).
+        keypoints, factors = refine_keypoints(refiner, pixels, keypoints)
+        return keypoints, scores * factors, None
+    # The points a move of up to REACH can bring inside, strongest first.
+    reach = REACH / upsample
+    possible = points.inside(
+        points.to_input(keypoints, upsample), sizes[:, None, ::-1], border - reach
+    )
+    _, order = jax.lax.top_k(jnp.where(possible, scores, -jnp.inf), count)
+    moved, factors = refine_keypoints(refiner, pixels, points.take(keypoints, order))
+
+    def scatter(values, chosen, new):
+        return values.at[chosen].set(new)
+
+    keypoints = jax.vmap(scatter)(keypoints, order, moved)
+    scores = jax.vmap(scatter)(scores, order, points.take(scores, order) * factors)
+    valid = jax.vmap(scatter)(jnp.zeros(scores.shape, bool), order, jnp.ones(order.shape, bool))
+    return keypoints, scores, valid
 
 
 def save_params(path: str | pathlib.Path, params: dict) -> None:

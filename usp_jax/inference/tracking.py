@@ -41,16 +41,22 @@ from usp_jax.inference.matching import (
 #: and the radius that spreads points for a better-conditioned estimate (RESULTS.md).
 TOP_N = 1000
 NMS_RADIUS = 4.0
-#: The video default: the distilled fast network on a copy of each frame at most 480 px long
-#: (points in the frame's pixels). On real footage (box.mp4, 640x480) it keeps the default
-#: ``paper`` weights' inliers at every frame gap at about 0.2x their time, below SIFT's (RESULTS.md,
-#: "Video tracking"); ``paper`` at full size takes ~6x SIFT's time, too slow for a live camera.
-#: Without the sub-pixel refinement: on video it adds time and no inliers (RESULTS.md).
+#: The video default: the distilled fast network on a copy of each frame at most 640 px long
+#: (points in the frame's pixels; a 640x480 frame as it is), chosen by relative pose accuracy at
+#: SIFT's time budget on rendered rooms (benchmarks/bench_pose.py, RESULTS.md "Pose accuracy"):
+#: on 72 design pairs its AUC@10 is 0.108 above the same network at 480 px (95% interval +0.014
+#: to +0.192) at 0.87-0.97x SIFT's time per image; SIFT's AUC stays above it. ``paper`` at full
+#: size takes ~6x SIFT's time, too slow for a live camera. Without the sub-pixel refinement: on
+#: video it adds time and no inliers, and on the rooms it takes the network past SIFT's time.
 VIDEO_WEIGHTS = "distilled"
-VIDEO_SIDE = 480
+VIDEO_SIDE = 640
 #: RANSAC confidence of the fundamental matrix (OpenCV's default, 0.99, stops too early for
 #: hundreds of matches with many outliers).
 CONFIDENCE = 0.999
+#: Median motion (px per tracked frame) of the inliers under which the camera counts as still:
+#: a detector's points jitter by a few tenths of a pixel on a static view, and a hand-held
+#: camera moves by pixels. On a static view every point fits a fundamental matrix.
+STATIC_MOTION = 0.5
 
 
 @dataclasses.dataclass(frozen=True)
@@ -82,7 +88,8 @@ class TrackedFrame(NamedTuple):
     keyframe this frame was matched to; keyframe_inliers: its verified matches to it (equal to
     the inliers' count when the keyframe is the previous frame). is_keyframe: this frame is the
     keyframe of the frames after it. ms: milliseconds spent on the frame (detection, matching,
-    verification, track ids).
+    verification, track ids). scores: float32 ``[N]`` and descriptors ``[N, D]`` of the points,
+    as the detector returned them (float32, or uint8 packed bits for binary descriptors).
     """
 
     index: int
@@ -94,6 +101,8 @@ class TrackedFrame(NamedTuple):
     keyframe_inliers: int
     is_keyframe: bool
     ms: float
+    scores: np.ndarray | None = None
+    descriptors: np.ndarray | None = None
 
 
 def verify(points1: np.ndarray, points2: np.ndarray, config: TrackingConfig) -> np.ndarray:
@@ -223,6 +232,8 @@ def track(
             keyframe_inliers,
             is_keyframe,
             1e3 * (time.perf_counter() - start),
+            np.asarray(features.scores, np.float32).reshape(-1),
+            np.asarray(features.descriptors),
         )
 
 
@@ -233,3 +244,49 @@ def track_lengths(results: Iterable[TrackedFrame]) -> np.ndarray:
     if not ids:
         return np.zeros(0, np.int64)
     return np.unique(np.concatenate(ids), return_counts=True)[1].astype(np.int64)
+
+
+def camera_motion(results: list[TrackedFrame]) -> float | None:
+    """The median over consecutive tracked frames of the median distance (px) its inliers moved
+    from the previous frame; None with fewer than two frames or no inliers. Under
+    ``STATIC_MOTION`` the camera does not move, and a fundamental matrix means nothing."""
+    steps = []
+    for before, after in zip(results[:-1], results[1:]):
+        kept = after.matches[after.inliers]
+        if len(kept):
+            moved = after.points[kept[:, 1]] - before.points[kept[:, 0]]
+            steps.append(float(np.median(np.linalg.norm(moved, axis=1))))
+    return float(np.median(steps)) if steps else None
+
+
+def save_features(file, results: list[TrackedFrame]) -> None:
+    """Every frame's points, scores, descriptors and track ids in one compressed ``.npz``
+    (``file``: a path or a binary file): ``index`` [F], ``offsets`` [F + 1] (frame f's rows are
+    ``offsets[f]:offsets[f + 1]``), ``points`` float32 [P, 2], ``scores`` float32 [P],
+    ``track_ids`` int64 [P], and ``descriptors`` [P, D]: float descriptors as float16 (half the
+    size; unit-length entries keep 3 significant digits), binary ones as their uint8 bytes."""
+    counts = [len(r.points) for r in results]
+    descriptors = np.concatenate([np.asarray(r.descriptors) for r in results])
+    if descriptors.dtype != np.uint8:
+        descriptors = descriptors.astype(np.float16)
+    np.savez_compressed(
+        file,
+        index=np.array([r.index for r in results], np.int64),
+        offsets=np.r_[0, np.cumsum(counts)].astype(np.int64),
+        points=np.concatenate([r.points for r in results]).astype(np.float32),
+        scores=np.concatenate([r.scores for r in results]).astype(np.float32),
+        track_ids=np.concatenate([r.track_ids for r in results]).astype(np.int64),
+        descriptors=descriptors,
+    )
+
+
+def load_features(file) -> list[dict[str, np.ndarray]]:
+    """:func:`save_features`' frames: one dict per frame with ``index`` and its ``points``,
+    ``scores``, ``track_ids`` and ``descriptors`` (float16 or uint8, as saved)."""
+    with np.load(file) as data:
+        offsets = data["offsets"]
+        arrays = {k: data[k] for k in ("points", "scores", "track_ids", "descriptors")}
+        return [
+            {"index": int(i), **{k: v[start:stop] for k, v in arrays.items()}}
+            for i, start, stop in zip(data["index"], offsets[:-1], offsets[1:], strict=True)
+        ]

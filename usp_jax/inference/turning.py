@@ -4,7 +4,7 @@ The upright weights match well up to ~10-20 degrees of in-plane rotation and fai
 rotation-invariant weights (``Detector.pretrained("rotation")``) match at any angle, but far
 less distinctively. Together they do better than either: the rotation-invariant network (the
 *guide*) estimates how far image 2 is turned from image 1, image 2 is turned back by that angle,
-and the upright network matches the pair (experiments/RESULTS.md, "Any rotation": on rotated
+and the upright network matches the pair (experiments/notes/choices.md, "--any-rotation": on rotated
 viewpoint pairs MS 0.246 -> 0.517 and HA@3 0.31 -> 0.800, 0.530 and 0.850 with today's refined
 points, and with ``upsample=2`` an MS above ORB's, AKAZE's, BRISK's and SIFT's at every angle,
 at the cost of two guide detections and one detection on a larger canvas). Where the guide
@@ -79,7 +79,7 @@ def turn(image: np.ndarray, angle: float) -> tuple[np.ndarray, np.ndarray]:
     edges (``cv2.BORDER_REFLECT_101``). Black corners would put an artificial high-contrast edge
     along the photo's border that the network fires on and that bleeds into the descriptors of
     points near it: on the rotated held-out pairs mirroring lifted MS by 0.022 and HA@1 by 0.069
-    (experiments/RESULTS.md, "Any rotation")."""
+    (experiments/notes/choices.md, "--any-rotation")."""
     height, width = image.shape[:2]
     quarters = _quarter_turns(angle)
     if quarters is None:

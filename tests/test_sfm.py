@@ -1,0 +1,110 @@
+"""usp_jax.sfm: COLMAP's pixel convention, the pairs, the matcher, the pose errors and the
+database, with pycolmap itself as the reference."""
+
+import cv2
+import numpy as np
+import pycolmap
+import pytest
+from scipy.spatial.transform import Rotation
+
+from usp_jax import sfm
+from usp_jax.inference.features import Features
+from usp_jax.inference.matching import mutual_nearest_neighbours, nearest_neighbours
+
+
+def test_colmap_keypoints_are_ours_plus_half_a_pixel_as_colmap_projects_the_optical_axis():
+    height, width = 48, 64
+    camera = pycolmap.Camera(
+        model="PINHOLE", width=width, height=height, params=[50.0, 50.0, width / 2, height / 2]
+    )
+    # The optical axis meets the image at its centre: ((width - 1) / 2, (height - 1) / 2) in
+    # ours (pixel centres at integers), (width / 2, height / 2) in COLMAP's.
+    centre = np.array([[(width - 1) / 2, (height - 1) / 2]])
+    np.testing.assert_allclose(sfm.colmap_keypoints(centre), [camera.img_from_cam([0, 0, 1])])
+    np.testing.assert_array_equal(sfm.colmap_keypoints([[0, 0], [3, 2]]), [[0.5, 0.5], [3.5, 2.5]])
+
+
+def test_image_pairs_every_pair_for_photos_and_a_window_for_video():
+    np.testing.assert_array_equal(sfm.image_pairs(3), [[0, 1], [0, 2], [1, 2]])
+    np.testing.assert_array_equal(sfm.image_pairs(4, window=1), [[0, 1], [1, 2], [2, 3]])
+    np.testing.assert_array_equal(
+        sfm.image_pairs(4, window=2), [[0, 1], [0, 2], [1, 2], [1, 3], [2, 3]]
+    )
+
+
+def test_mutual_nearest_neighbours_equal_opencvs_cross_checked_brute_force():
+    rng = np.random.default_rng(0)
+    first = rng.standard_normal((300, 32)).astype(np.float32)
+    second = first[rng.permutation(300)][:250] + rng.normal(0, 1.5, (250, 32)).astype(np.float32)
+    ours = mutual_nearest_neighbours(first, second)
+    opencv = nearest_neighbours(first, second, cv2.NORM_L2, cross_check=True)
+    assert 50 < len(ours) < 250  # some, not all, are mutual
+    np.testing.assert_array_equal(ours, opencv[np.argsort(opencv[:, 0])])
+    assert mutual_nearest_neighbours(first[:0], second).shape == (0, 2)
+
+
+def test_the_ratio_test_keeps_a_match_whose_nearest_is_closer_than_ratio_times_the_second():
+    first = np.array([[0.0, 0.0]], np.float32)
+    second = np.array([[1.0, 0.0], [0.0, 1.5]], np.float32)  # distances 1 and 1.5
+    np.testing.assert_array_equal(mutual_nearest_neighbours(first, second, 0.7), [[0, 0]])
+    assert len(mutual_nearest_neighbours(first, second, 0.6)) == 0  # 1 >= 0.6 * 1.5
+
+
+def _poses(count: int, seed: int = 0):
+    rng = np.random.default_rng(seed)
+    return Rotation.random(count, random_state=seed).as_matrix(), rng.normal(0, 2, (count, 3))
+
+
+def test_relative_pose_errors_ignore_the_gauge_and_measure_a_known_turn():
+    rotations, centres = _poses(4)
+    # Another world frame and scale: X' = 3 Q X + T, so R' = R Q^T and c' = 3 Q c + T.
+    q = Rotation.from_euler("xyz", [20, -50, 70], degrees=True).as_matrix()
+    moved = (rotations @ q.T, 3 * centres @ q.T + [1.0, -2.0, 5.0])
+    rotation, direction = sfm.relative_pose_errors(*moved, rotations, centres)
+    np.testing.assert_allclose(rotation, 0, atol=1e-5)
+    np.testing.assert_allclose(direction, 0, atol=1e-5)
+    # Camera 0 turned 2 degrees more about its own x axis: each of its 3 pairs is off by 2.
+    turned = rotations.copy()
+    turned[0] = Rotation.from_euler("x", 2, degrees=True).as_matrix() @ rotations[0]
+    rotation, _ = sfm.relative_pose_errors(turned, centres, rotations, centres)
+    np.testing.assert_allclose(rotation, [2, 2, 2, 0, 0, 0], atol=1e-6)
+
+
+def test_translation_direction_error_is_the_angle_between_baselines_in_camera_j():
+    eye = np.stack([np.eye(3)] * 2)
+    true_centres = np.array([[0.0, 0, 0], [1, 0, 0]])
+    found = np.array([[0.0, 0, 0], [1, 1, 0]])  # the second camera 45 degrees off the line
+    _, direction = sfm.relative_pose_errors(eye, found, eye, true_centres)
+    np.testing.assert_allclose(direction, [45.0])
+
+
+def test_mixed_sizes_are_refused_naming_both_images_and_the_shared_camera():
+    with pytest.raises(ValueError, match=r"b.png is 40x30.*one COLMAP camera"):
+        sfm.check_sizes(["a.png", "b.png"], [(20, 40), (30, 40)])
+    with pytest.raises(ValueError, match="two images or more, got 1"):
+        sfm.check_sizes(["a.png"], [(20, 40)])
+
+
+def _features(count: int, seed: int) -> Features:
+    rng = np.random.default_rng(seed)
+    keypoints = rng.uniform(0, 40, (count, 2)).astype(np.float32)
+    return Features(keypoints, rng.random(count, np.float32), rng.random((count, 8), np.float32))
+
+
+def test_database_holds_the_keypoints_in_colmaps_convention_and_the_matches(tmp_path):
+    images = tmp_path / "images"
+    images.mkdir()
+    names = ["a.png", "b.png", "c.png"]
+    for name in names:
+        cv2.imwrite(str(images / name), np.zeros((48, 64, 3), np.uint8))
+    features = [_features(n, seed) for seed, n in enumerate((30, 25, 20))]
+    pairs = sfm.image_pairs(3)
+    matches = sfm.match_pairs(features, pairs)
+    ids = sfm.write_database(tmp_path / "db.db", images, names, features, pairs, matches)
+    with pycolmap.Database.open(str(tmp_path / "db.db")) as db:
+        assert db.num_images() == 3 and db.num_cameras() == 1
+        for image_id, found in zip(ids, features):
+            np.testing.assert_allclose(db.read_keypoints(image_id)[:, :2], found.keypoints + 0.5)
+        for (i, j), pair_matches in zip(pairs, matches):
+            np.testing.assert_array_equal(db.read_matches(ids[i], ids[j]), pair_matches)
+        assert db.num_matches() == sum(len(m) for m in matches)

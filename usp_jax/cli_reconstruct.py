@@ -1,0 +1,240 @@
+"""``usp-jax reconstruct IMAGES --out DIR``: structure from motion with the network's features
+(``usp_jax.sfm``: our keypoints and mutual-nearest-neighbour matches, COLMAP's verification and
+incremental mapper through pycolmap).
+
+IMAGES is a folder of photos, matched exhaustively, or a video, whose frames (every ``--every``-th)
+are written to ``DIR/images`` and matched each to the ``--window`` frames after it. DIR gets what
+COLMAP writes (``database.db``, models under ``sparse/0``, ``sparse/1``, ...) and
+``summary.json``, ``points.ply`` and ``cameras.png`` (the largest model from above).
+
+Everything is written into a temporary folder beside DIR, renamed to DIR when the run ends, so a
+failure leaves nothing half-written; DIR must be new, empty or an earlier reconstruct output.
+A run that finds no model still writes its summary, then fails.
+
+``--any-rotation`` is not offered: it turns image 2 back per pair, so one image would get other
+keypoints in each pair, while COLMAP keeps one set per image. A rolling camera is better served
+by ``--weights rotation``.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import pathlib
+import shutil
+import sys
+import time
+
+from usp_jax import sfm
+from usp_jax.inference.images import IMAGE_SUFFIXES, read_image
+
+log = logging.getLogger(__name__)
+
+#: The network's defaults here: the distilled weights (fast) at full size with the refinement,
+#: and more points than a single match needs, as SIFT in COLMAP keeps thousands.
+WEIGHTS = "distilled"
+TOP = 2000
+#: What a reconstruct run writes into DIR: a folder holding only these is its own earlier output.
+OUTPUTS = frozenset(
+    {"database.db", "sparse", "images", "summary.json", "points.ply", "cameras.png", "features.npz"}
+)
+
+
+def add_parser(subparsers) -> None:
+    """The ``reconstruct`` subcommand's options (``cli_options.build_parser`` calls this)."""
+    from usp_jax import cli_arguments as options
+
+    p = subparsers.add_parser(
+        "reconstruct", help="structure from motion: cameras and 3-D points with COLMAP"
+    )
+    p.add_argument("images", help="a folder of photos (one size) or a video file")
+    p.add_argument("--out", required=True, help="new folder for the database, models, summary")
+    options._add_checkpoint(p, default=WEIGHTS, why="the fast network taught by paper")
+    p.add_argument(
+        "--top", type=options._positive, default=TOP, help=f"points per image (default {TOP})"
+    )
+    options._add_max_side(p, "the network sees images shrunk to this longest side (0: never)")
+    p.add_argument(
+        "--window",
+        type=options._positive,
+        default=sfm.WINDOW,
+        metavar="N",
+        help="a video frame is matched to the N frames after it",
+    )
+    p.add_argument(
+        "--every", type=options._positive, default=1, metavar="N", help="every N-th video frame"
+    )
+    p.add_argument(
+        "--export-features",
+        action="store_true",
+        help="also write DIR/features.npz: keypoints, scores, descriptors, raw matches",
+    )
+    p.add_argument("--no-progress", action="store_true", help="no progress bars")
+    options._add_upsample(p)
+    options._add_any_scale(p)
+
+
+def check_out(out: pathlib.Path) -> None:
+    """ValueError unless ``out`` is new, an empty folder or an earlier reconstruct output."""
+    if out.exists() and not out.is_dir():
+        raise ValueError(f"--out {out} exists and is not a folder")
+    entries = sorted(p.name for p in out.iterdir()) if out.is_dir() else []
+    others = [name for name in entries if name not in OUTPUTS]
+    if others or (entries and "summary.json" not in entries):
+        example = (others or entries)[0]
+        raise ValueError(
+            f"--out {out} holds {len(entries)} entries (e.g. {example}) and is not a reconstruct"
+            " output (no summary.json); give a new or empty folder"
+        )
+
+
+def _image_files(folder: pathlib.Path) -> list[pathlib.Path]:
+    files = sorted(p for p in folder.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
+    if len(files) < 2:
+        raise ValueError(
+            f"{folder}: structure from motion needs two images or more, found {len(files)}"
+            f" ({'/'.join(IMAGE_SUFFIXES)} files)"
+        )
+    return files
+
+
+def _photos(folder: pathlib.Path, skipped: list[str]):
+    """(name, RGB image) of each readable photo; unreadable ones are skipped with a warning."""
+    for path in _image_files(folder):
+        try:
+            yield path.name, read_image(path)
+        except (ValueError, OSError) as err:
+            skipped.append(str(err))
+            log.warning("skipping %s", err)
+
+
+def _frames(video_path: pathlib.Path, every: int, image_dir: pathlib.Path):
+    """(name, RGB frame) of every ``every``-th frame, each written as a PNG into ``image_dir``."""
+    import cv2
+
+    from usp_jax.inference import video
+
+    image_dir.mkdir()
+    for index, frame in enumerate(video.open_source(str(video_path)).frames):
+        if index % every == 0:
+            name = f"frame{index:06d}.png"
+            if not cv2.imwrite(str(image_dir / name), cv2.cvtColor(frame, cv2.COLOR_RGB2BGR)):
+                raise OSError(f"cannot write {image_dir / name}")
+            yield name, frame
+
+
+def _detect(detector, named_images, bar) -> tuple[list[str], list, tuple[int, int]]:
+    """Names and features of the images, detected one by one under ``bar``; ValueError at the
+    first image whose size differs from the first's, or when fewer than two are left."""
+    names, features, size = [], [], None
+    for name, image in named_images:
+        if names:
+            sfm.check_sizes([names[0], name], [size, image.shape[:2]])
+        names.append(name)
+        size = size or image.shape[:2]
+        features.append(detector.detect(image))
+        bar.update()
+    return names, features, sfm.check_sizes(names, [size] * len(names))
+
+
+def _detector(args, load_detector):
+    if not (getattr(args, "weights", None) or getattr(args, "checkpoint", None)):
+        args.weights = WEIGHTS
+    return load_detector(args, top_n=args.top, max_side=args.max_side, refine=True)
+
+
+def _stages(args, detector, work: pathlib.Path, source: pathlib.Path, summary: dict) -> list:
+    """Every stage into ``work``, timed into ``summary``; the models, largest first."""
+    from tqdm import tqdm
+
+    seconds, skipped = summary["seconds"], summary["skipped"]
+    video = not source.is_dir()
+    image_dir = work / "images" if video else source.absolute()
+    named = _frames(source, args.every, image_dir) if video else _photos(source, skipped)
+    quiet = args.no_progress
+    start = time.perf_counter()
+    with tqdm(desc="detect", unit="image", disable=quiet, leave=False) as bar:
+        names, features, (height, width) = _detect(detector, named, bar)
+    seconds["detect"] = time.perf_counter() - start
+    pairs = sfm.image_pairs(len(names), args.window if video else None)
+    start = time.perf_counter()
+    matches = sfm.match_pairs(
+        features, pairs, lambda p: tqdm(p, desc="match", unit="pair", disable=quiet, leave=False)
+    )
+    seconds["match"] = time.perf_counter() - start
+    summary.update(
+        images=len(names),
+        size=[width, height],
+        pairs=len(pairs),
+        keypoints=int(sum(len(f.keypoints) for f in features)),
+        matches=int(sum(len(m) for m in matches)),
+    )
+    if args.export_features:
+        sfm.export_features(work / "features.npz", names, features, pairs, matches)
+    start = time.perf_counter()
+    database = work / "database.db"
+    with tqdm(total=2, desc="database, verify", disable=quiet, leave=False) as bar:
+        sfm.write_database(database, image_dir, names, features, pairs, matches)
+        bar.update()
+        sfm.verify(database)
+        bar.update()
+    seconds["verify"] = time.perf_counter() - start
+    summary["verified_pairs"] = sfm.verified_pairs(database)
+    start = time.perf_counter()
+    with tqdm(total=len(names), desc="map", unit="image", disable=quiet, leave=False) as bar:
+        models = sfm.map_images(database, image_dir, work / "sparse", bar.update)
+    seconds["map"] = time.perf_counter() - start
+    return models
+
+
+def _finish(work: pathlib.Path, out: pathlib.Path, models: list, summary: dict) -> None:
+    """The figures and summary into ``work``, then ``work`` renamed to ``out``."""
+    summary["models"] = [sfm.model_summary(model) for model in models]
+    summary.update(summary["models"][0] if models else {})
+    if models:
+        models[0].export_PLY(str(work / "points.ply"))
+        sfm.top_view(models[0], work / "cameras.png")
+    (work / "summary.json").write_text(json.dumps(summary, indent=1) + "\n")
+    if out.exists():
+        shutil.rmtree(out)  # empty, or an earlier reconstruct output (check_out)
+    os.replace(work, out)
+
+
+def run(args, load_detector) -> int:
+    """The command: checks, stages, outputs and the one-line result."""
+    source = pathlib.Path(args.images).expanduser()
+    out = pathlib.Path(args.out).expanduser().absolute()
+    pycolmap = sfm.load_pycolmap()
+    if not source.exists():
+        raise FileNotFoundError(f"{args.images} does not exist (a folder of photos or a video)")
+    check_out(out)
+    if not args.verbose:
+        pycolmap.logging.minloglevel = 3  # its failures come back as our one line
+    detector = _detector(args, load_detector)
+    summary = {"command": "reconstruct", "source": str(args.images), "seconds": {}, "skipped": []}
+    summary["detector"] = {"weights": args.weights or args.checkpoint, "top": args.top}
+    out.parent.mkdir(parents=True, exist_ok=True)
+    work = out.with_name(f".{out.name}.partial")
+    shutil.rmtree(work, ignore_errors=True)
+    work.mkdir()
+    try:
+        start = time.perf_counter()
+        models = _stages(args, detector, work, source, summary)
+        summary["seconds"]["total"] = time.perf_counter() - start
+        _finish(work, out, models, summary)
+    finally:
+        shutil.rmtree(work, ignore_errors=True)
+    if not models:
+        raise ValueError(
+            f"no model found: no image pair of {summary['images']} had enough verified matches"
+            f" ({summary['verified_pairs']} verified pairs) to start one; wrote {out}/summary.json"
+        )
+    print(
+        f"{args.images}: {summary['registered_images']} of {summary['images']} images registered,"
+        f" {summary['points']} points (mean track {summary['mean_track_length']:.2f}, reprojection"
+        f" error {summary['mean_reprojection_error']:.2f} px), {len(models)} model(s) in"
+        f" {summary['seconds']['total']:.0f} s; wrote {out}",
+        file=sys.stdout,
+    )
+    return 0

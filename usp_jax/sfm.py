@@ -1,0 +1,272 @@
+"""Structure from motion with the network's features: COLMAP's database, geometric verification,
+incremental mapper and bundle adjustment through pycolmap (the optional ``sfm`` extra), with our
+keypoints and mutual-nearest-neighbour matches in place of COLMAP's SIFT.
+
+The steps, each a function (``usp-jax reconstruct`` runs them in order):
+:func:`detect_images` -> :func:`match_pairs` on :func:`image_pairs` -> :func:`write_database`
+-> :func:`verify` -> :func:`map_images`, then :func:`model_summary` and, where true poses are
+known, :func:`pose_errors`. :func:`export_features` writes the features and raw matches for
+users who run COLMAP or hloc themselves.
+
+It lives beside the CLI rather than in ``inference`` or ``evaluation``: it is an application of
+the detector with a heavy optional dependency that detection, training and evaluation must never
+load, and ``benchmarks/bench_sfm.py`` uses it together with the evaluation's scenes.
+
+COLMAP puts the centre of the top-left pixel at (0.5, 0.5); ours sits at (0, 0)
+(``core.model``'s convention), so :func:`colmap_keypoints` is the one place that converts.
+"""
+
+from __future__ import annotations
+
+import pathlib
+from collections.abc import Callable, Iterable, Sequence
+
+import numpy as np
+
+from usp_jax.inference.features import Features
+from usp_jax.inference.matching import mutual_nearest_neighbours
+
+#: How to get pycolmap, quoted when it is missing.
+INSTALL = "pip install 'usp-jax[sfm]'"
+#: COLMAP's pixel-corner coordinates minus ours (pixel centres at integers, ``core.model``).
+COLMAP_OFFSET = 0.5
+#: Lowe's ratio test on the mutual nearest neighbours (1: none).
+RATIO = 1.0
+#: ``--window`` default: a video frame is matched to this many frames after it (COLMAP's own
+#: sequential matcher overlaps 10 too).
+WINDOW = 10
+
+
+def load_pycolmap():
+    """The ``pycolmap`` module; ValueError naming the install command when it is missing."""
+    try:
+        import pycolmap
+    except ImportError:
+        raise ValueError(f"pycolmap is not installed: {INSTALL}") from None
+    return pycolmap
+
+
+def colmap_keypoints(keypoints: np.ndarray) -> np.ndarray:
+    """Our (x, y) ``[N, 2]`` (pixel centres at integers) as COLMAP's float32 ``[N, 2]`` (the
+    top-left pixel's centre at (0.5, 0.5))."""
+    return (np.asarray(keypoints, np.float32).reshape(-1, 2) + COLMAP_OFFSET).astype(np.float32)
+
+
+def image_pairs(count: int, window: int | None = None) -> np.ndarray:
+    """Pairs to match, int ``[P, 2]`` (i < j): every pair (``window`` None: photos), or each
+    image with the ``window`` images after it (a video's frames)."""
+    i, j = np.triu_indices(count, k=1)
+    keep = slice(None) if window is None else (j - i) <= window
+    return np.stack([i[keep], j[keep]], axis=1).astype(np.int64).reshape(-1, 2)
+
+
+def check_sizes(names: Sequence[str], sizes: Sequence[tuple[int, int]]) -> tuple[int, int]:
+    """The one (height, width) of all images; ValueError when there are fewer than two, or when
+    sizes differ: all images share one COLMAP camera (one size, one focal length)."""
+    if len(names) < 2:
+        raise ValueError(f"structure from motion needs two images or more, got {len(names)}")
+    first = tuple(sizes[0])
+    for name, size in zip(names, sizes):
+        if tuple(size) != first:
+            raise ValueError(
+                f"mixed image sizes: {names[0]} is {first[1]}x{first[0]} but {name} is"
+                f" {size[1]}x{size[0]}; the images share one COLMAP camera (one size and focal"
+                " length, COLMAP's SINGLE camera mode): resize them alike or reconstruct each"
+                " size apart"
+            )
+    return first
+
+
+def detect_images(
+    detector, images: Iterable[np.ndarray], progress: Callable = iter
+) -> list[Features]:
+    """The detector's features of each uint8 ``[H, W, 3]`` RGB image, in order (``progress``
+    wraps the iteration, e.g. a tqdm bar)."""
+    return [detector.detect(image) for image in progress(images)]
+
+
+def match_pairs(
+    features: Sequence[Features], pairs: np.ndarray, progress: Callable = iter, ratio: float = RATIO
+) -> list[np.ndarray]:
+    """Mutual nearest neighbours in descriptor space (``inference.matching``, L2: what ``match`` pairs) of each pair:
+    int ``[K, 2]`` (index into image i's keypoints, into image j's) per row of ``pairs``."""
+    return [
+        mutual_nearest_neighbours(features[i].descriptors, features[j].descriptors, ratio)
+        for i, j in progress(pairs)
+    ]
+
+
+def write_database(
+    database: str | pathlib.Path,
+    image_dir: str | pathlib.Path,
+    names: Sequence[str],
+    features: Sequence[Features],
+    pairs: np.ndarray,
+    matches: Sequence[np.ndarray],
+) -> list[int]:
+    """A new COLMAP database holding the images (one shared SIMPLE_RADIAL camera, COLMAP's own
+    import: rig, frame and image rows), their keypoints in COLMAP's convention and the raw
+    matches. ``names`` are paths relative to ``image_dir``. Returns each name's image id."""
+    pycolmap = load_pycolmap()
+    pycolmap.Database.open(str(database)).close()  # import_images needs the file to exist
+    pycolmap.import_images(
+        str(database), str(image_dir), pycolmap.CameraMode.SINGLE, image_names=list(names)
+    )
+    with pycolmap.Database.open(str(database)) as db:
+        by_name = {image.name: image.image_id for image in db.read_all_images()}
+        ids = [by_name[name] for name in names]
+        for image_id, found in zip(ids, features):
+            db.write_keypoints(image_id, colmap_keypoints(found.keypoints))
+        for (i, j), pair_matches in zip(pairs, matches):
+            db.write_matches(ids[i], ids[j], np.asarray(pair_matches, np.uint32).reshape(-1, 2))
+    return ids
+
+
+def verify(database: str | pathlib.Path) -> None:
+    """COLMAP's geometric verification of every matched pair (RANSAC E, F or H; the inliers
+    become the database's two-view geometries, which the mapper uses)."""
+    load_pycolmap().geometric_verification(str(database))
+
+
+def verified_pairs(database: str | pathlib.Path) -> int:
+    """How many image pairs passed the geometric verification."""
+    with load_pycolmap().Database.open(str(database)) as db:
+        return int(db.num_verified_image_pairs())
+
+
+def map_images(
+    database: str | pathlib.Path,
+    image_dir: str | pathlib.Path,
+    sparse_dir: str | pathlib.Path,
+    on_image: Callable[[], object] | None = None,
+) -> list:
+    """COLMAP's incremental mapper: the models it finds, largest first, written as COLMAP
+    writes them (``sparse_dir/0``, ``sparse_dir/1``, ...; none when no pair could start one).
+    ``image_dir`` gives the points' colours; ``on_image`` is called at each image registered."""
+    pycolmap = load_pycolmap()
+    pathlib.Path(sparse_dir).mkdir(parents=True, exist_ok=True)
+    models = pycolmap.incremental_mapping(
+        str(database), str(image_dir), str(sparse_dir), next_image_callback=on_image
+    )
+    return [models[k] for k in sorted(models)]
+
+
+def model_summary(model) -> dict:
+    """A model's registered images, 3-D points, mean track length (observations per point) and
+    mean reprojection error in px."""
+    return {
+        "registered_images": int(model.num_reg_images()),
+        "points": int(model.num_points3D()),
+        "mean_track_length": float(model.compute_mean_track_length()),
+        "mean_reprojection_error": float(model.compute_mean_reprojection_error()),
+    }
+
+
+def rotation_angle(rotations: np.ndarray) -> np.ndarray:
+    """Angle in degrees of rotation matrices ``[..., 3, 3]``: arccos((trace - 1) / 2)."""
+    cosine = (np.trace(rotations, axis1=-2, axis2=-1) - 1) / 2
+    return np.degrees(np.arccos(np.clip(cosine, -1.0, 1.0)))
+
+
+def direction_angle(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Angle in degrees between vectors ``[..., 3]`` (0 to 180; a zero vector gives 90)."""
+    norms = np.linalg.norm(a, axis=-1) * np.linalg.norm(b, axis=-1)
+    cosine = np.sum(a * b, axis=-1) / np.where(norms > 0, norms, np.inf)
+    return np.degrees(np.arccos(np.clip(cosine, -1.0, 1.0)))
+
+
+def relative_pose_errors(
+    rotations: np.ndarray, centres: np.ndarray, true_rotations: np.ndarray, true_centres: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Errors over every pair i < j of cameras: world-to-camera rotations ``[N, 3, 3]`` and
+    camera centres ``[N, 3]``, estimated and true. Returns (relative-rotation errors, the angle
+    between R_j R_i^T estimated and true; translation-direction errors, the angle between
+    R_j (c_i - c_j) estimated and true), degrees ``[N (N - 1) / 2]`` each. Both ignore the
+    model's gauge (its world frame and scale)."""
+    i, j = np.triu_indices(len(rotations), k=1)
+
+    def relative(r, c):
+        turn = r[j] @ np.swapaxes(r[i], -1, -2)
+        return turn, np.einsum("pab,pb->pa", r[j], c[i] - c[j])
+
+    turn, direction = relative(np.asarray(rotations), np.asarray(centres))
+    true_turn, true_direction = relative(np.asarray(true_rotations), np.asarray(true_centres))
+    return (
+        rotation_angle(np.swapaxes(turn, -1, -2) @ true_turn),
+        direction_angle(direction, true_direction),
+    )
+
+
+def registered_poses(model) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    """Image name -> (world-to-camera rotation [3, 3], camera centre [3]) of every registered
+    image of a pycolmap model."""
+    poses = {}
+    for image in model.images.values():
+        if image.has_pose:
+            pose = image.cam_from_world()
+            poses[image.name] = (pose.rotation.matrix(), np.asarray(image.projection_center()))
+    return poses
+
+
+def pose_errors(model, true_poses: dict[str, tuple[np.ndarray, np.ndarray]]) -> dict:
+    """:func:`relative_pose_errors` over all pairs of the model's registered images with a true
+    pose (name -> (rotation [3, 3], centre [3])): their count and the medians in degrees."""
+    found = registered_poses(model)
+    names = sorted(set(found) & set(true_poses))
+    if len(names) < 2:
+        return {"pairs": 0, "median_rotation_error": None, "median_translation_error": None}
+    stack = lambda poses, k: np.stack([poses[n][k] for n in names])
+    rotation, translation = relative_pose_errors(
+        stack(found, 0), stack(found, 1), stack(true_poses, 0), stack(true_poses, 1)
+    )
+    return {
+        "pairs": len(rotation),
+        "median_rotation_error": float(np.median(rotation)),
+        "median_translation_error": float(np.median(translation)),
+    }
+
+
+def export_features(
+    path: str | pathlib.Path,
+    names: Sequence[str],
+    features: Sequence[Features],
+    pairs: np.ndarray,
+    matches: Sequence[np.ndarray],
+) -> None:
+    """Features and raw matches in one ``.npz`` for other tools (COLMAP, hloc): per image
+    ``NAME/keypoints`` float32 ``[N, 2]`` in COLMAP's convention, ``NAME/scores`` ``[N]``,
+    ``NAME/descriptors`` ``[N, D]``; per pair ``NAME1//NAME2/matches`` int ``[K, 2]``."""
+    arrays = {}
+    for name, found in zip(names, features):
+        arrays[f"{name}/keypoints"] = colmap_keypoints(found.keypoints)
+        arrays[f"{name}/scores"] = np.asarray(found.scores, np.float32)
+        arrays[f"{name}/descriptors"] = np.asarray(found.descriptors)
+    for (i, j), pair_matches in zip(pairs, matches):
+        arrays[f"{names[i]}//{names[j]}/matches"] = np.asarray(pair_matches, np.int64)
+    with open(path, "wb") as file:
+        np.savez(file, **arrays)
+
+
+def top_view(model, path: str | pathlib.Path, points: int = 20000) -> None:
+    """A PNG of the model from above: its points (at most ``points``, in their colours) and
+    camera centres with viewing directions on the world's x-z plane (COLMAP's world is the
+    first camera's frame, y down, so x-z is the ground when that camera was level)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    from matplotlib import pyplot as plt
+
+    xyz = np.array([p.xyz for p in model.points3D.values()]).reshape(-1, 3)
+    rgb = np.array([p.color for p in model.points3D.values()]).reshape(-1, 3) / 255
+    keep = np.random.default_rng(0).permutation(len(xyz))[:points]
+    poses = registered_poses(model)
+    centres = np.array([c for _, c in poses.values()]).reshape(-1, 3)
+    views = np.array([r[2] for r, _ in poses.values()]).reshape(-1, 3)  # optical axes in world
+    figure, axes = plt.subplots(figsize=(8, 8))
+    axes.scatter(xyz[keep, 0], xyz[keep, 2], s=1, c=rgb[keep], linewidths=0)
+    axes.quiver(centres[:, 0], centres[:, 2], views[:, 0], views[:, 2], color="red", width=0.003)
+    axes.set(
+        aspect="equal", xlabel="x", ylabel="z", title=f"{len(poses)} cameras, {len(xyz)} points"
+    )
+    figure.savefig(path, dpi=100)
+    plt.close(figure)
