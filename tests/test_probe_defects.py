@@ -12,7 +12,7 @@ import shutil
 import cv2
 import numpy as np
 import pytest
-from conftest import SMALL_MODEL, TINY_RUN, tiny_config
+from conftest import SMALL_MODEL, TINY_RUN, one_error_line, snapshot, tiny_config
 
 from usp_jax import inference
 from usp_jax.cli import main
@@ -23,20 +23,6 @@ from usp_jax.inference import matching as matching_lib
 from usp_jax.inference import memory
 from usp_jax.training import checkpoint, train
 from usp_jax.training import workdir as workdir_lib
-
-
-def one_error_line(capsys, command: str) -> str:
-    err = [line for line in capsys.readouterr().err.splitlines() if "libpng warning" not in line]
-    assert len(err) == 1, err
-    assert err[0].startswith(f"usp-jax {command}: error: ")
-    return err[0]
-
-
-def snapshot(folder):
-    return {
-        p.relative_to(folder): p.read_bytes() if p.is_file() else None
-        for p in sorted(folder.rglob("*"))
-    }
 
 
 def write_rgb(path, image):

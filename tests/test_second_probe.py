@@ -9,7 +9,7 @@ import shutil
 
 import numpy as np
 import pytest
-from conftest import TINY_RUN
+from conftest import TINY_RUN, one_error_line, snapshot
 
 from usp_jax import inference
 from usp_jax.cli import main
@@ -19,20 +19,6 @@ from usp_jax.inference import memory, video, weights
 from usp_jax.training import config as config_lib
 from usp_jax.training import metrics as metrics_lib
 from usp_jax.training import workdir as workdir_lib
-
-
-def one_error_line(capsys, command: str) -> str:
-    err = [line for line in capsys.readouterr().err.splitlines() if "libpng warning" not in line]
-    assert len(err) == 1, err
-    assert err[0].startswith(f"usp-jax {command}: error: ")
-    return err[0]
-
-
-def snapshot(folder):
-    return {
-        p.relative_to(folder): p.read_bytes() if p.is_file() else None
-        for p in sorted(folder.rglob("*"))
-    }
 
 
 @pytest.fixture
