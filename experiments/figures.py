@@ -27,13 +27,15 @@ import numpy as np
 from usp_jax.core import geometry, losses
 from usp_jax.core.model import UnsuperPoint
 from usp_jax.evaluation import plotting
+from usp_jax.inference import weights
 from usp_jax.training import checkpoint, crops, data
 from usp_jax.training import metrics as metrics_lib
 
 
 def pair_statistics(checkpoint_dir, photos, height=240, width=320, seed=0):
     """d_k of point-pairs, scores and relative x of every point over the photos' random pairs."""
-    cfg, variables = checkpoint.load_variables(checkpoint_dir)
+    cfg = checkpoint.load_config(checkpoint_dir)
+    _, variables = weights.load_checkpoint(checkpoint_dir)
     model = UnsuperPoint(cfg.model)
     source = data.open_source(str(photos))
     rng = np.random.default_rng(seed)

@@ -123,3 +123,19 @@ def small_weights(tmp_path_factory):
     path = tmp_path_factory.mktemp("weights") / "small.npz"
     inference.save_weights(path, init_variables(jax.random.PRNGKey(0), SMALL_MODEL), SMALL_MODEL)
     return path
+
+
+def one_error_line(capsys, command: str) -> str:
+    """The one line a command wrote to stderr, checked to be its error line."""
+    err = [line for line in capsys.readouterr().err.splitlines() if "libpng warning" not in line]
+    assert len(err) == 1, err
+    assert err[0].startswith(f"usp-jax {command}: error: ")
+    return err[0]
+
+
+def snapshot(folder):
+    """{relative path: bytes (None for a folder)} of everything under ``folder``."""
+    return {
+        p.relative_to(folder): p.read_bytes() if p.is_file() else None
+        for p in sorted(folder.rglob("*"))
+    }

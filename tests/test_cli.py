@@ -175,6 +175,7 @@ def test_evaluate_baselines_prints_table_and_writes_json(pairs_dir, tmp_path, ca
     ]
 
 
+@pytest.mark.slow
 def test_train_resumes_and_the_checkpoint_detects_and_evaluates(
     workdir, pairs_dir, tmp_path, photo, capsys
 ):
@@ -375,6 +376,7 @@ def test_sizes_and_counts_below_one_are_rejected_by_the_parser(argv, message, ca
     assert message in capsys.readouterr().err.strip().splitlines()[-1]
 
 
+@pytest.mark.slow
 def test_demo_runs_offline_on_the_shipped_weights_and_writes_its_pngs(tmp_path, capsys):
     assert main(["demo", "--out", str(tmp_path)]) == 0
     out, err = capsys.readouterr()
@@ -388,6 +390,10 @@ def test_demo_runs_offline_on_the_shipped_weights_and_writes_its_pngs(tmp_path, 
     assert all(name in out for name in ("UnsuperPoint", "ORB", "SIFT"))
     assert len(list(tmp_path.glob("UnsuperPoint_v_*_keypoints.png"))) == 1
     assert len(list(tmp_path.glob("UnsuperPoint_v_*_matches.png"))) == 1
+    # One header above the table, and every PNG written is announced.
+    assert out.count("240x320, top 300 points") == 1
+    for png in tmp_path.glob("*.png"):
+        assert f"wrote {png}" in out
 
 
 @pytest.mark.parametrize(
@@ -435,6 +441,7 @@ def test_detect_with_named_weights_uses_that_network(photo, tmp_path, monkeypatc
     assert dims == {"paper": 256, "fast": 32}
 
 
+@pytest.mark.slow
 def test_verbose_flag_shows_usp_jax_info_lines_although_imports_install_a_root_handler(tmp_path):
     import subprocess
 

@@ -112,6 +112,7 @@ def runs(tmp_path_factory):
     return one, two, weights_at_4, finish(single), first, resumed
 
 
+@pytest.mark.slow
 def test_two_processes_train_as_one_process_with_two_devices_and_resume_exactly(runs):
     one, two, weights_at_4, single, first, resumed = runs
     for code, out, err in (single, *first, *resumed):
@@ -131,6 +132,7 @@ def test_two_processes_train_as_one_process_with_two_devices_and_resume_exactly(
     assert_same_weights(two, one)  # step 6, after the resume
 
 
+@pytest.mark.slow
 def test_a_failing_process_ends_every_process_of_the_run_with_its_error(tmp_path):
     missing = str(tmp_path / "no-photos")
     # Process 0, which hosts the coordination service, fails; process 1 is then waiting for it.
@@ -143,6 +145,7 @@ def test_a_failing_process_ends_every_process_of_the_run_with_its_error(tmp_path
     ]
 
 
+@pytest.mark.slow
 def test_sigterm_to_one_process_stops_every_process_at_one_step_with_its_checkpoint(tmp_path):
     run = tmp_path / "run"
     processes = start_processes(run, 10_000, "checkpoint_every=10000")
@@ -167,6 +170,7 @@ def test_sigterm_to_one_process_stops_every_process_at_one_step_with_its_checkpo
     assert metrics_lib.read_metrics(run)[-1]["step"] == step
 
 
+@pytest.mark.slow
 def test_a_wrong_coordinator_address_ends_the_wait_with_one_line(tmp_path):
     address = f"127.0.0.1:{free_port()}"  # nothing listens there
     began = time.monotonic()

@@ -66,3 +66,48 @@ def test_docs_artifact_example_loads_and_runs_an_exported_detector(tmp_path, mon
     assert names["keypoints"].shape == (len(names["images"]), 20, 2)
     np.testing.assert_allclose(names["points"], expected[0].keypoints, atol=1e-4)
     np.testing.assert_array_equal(names["counts"], [len(f.keypoints) for f in expected])
+
+
+def shell_lines(path: pathlib.Path) -> list[str]:
+    """The commands of a Markdown file's fenced ```bash blocks, one per line, comments cut."""
+    blocks = re.findall(r"^```bash\n(.*?)^```$", path.read_text(), flags=re.S | re.M)
+    lines = [line.split("  #")[0].strip() for block in blocks for line in block.splitlines()]
+    return [line for line in lines if line and not line.startswith("#")]
+
+
+def test_readme_shell_blocks_hold_commands_not_usage_syntax():
+    lines = shell_lines(ROOT / "README.md")
+    assert any(line.startswith("usp-jax train") for line in lines)
+    for line in lines:  # [optional] parts, a|b choices and CAPITAL placeholders do not run
+        assert not re.search(r"\[--|\w\|\w|\b[A-Z]{3,}\b", line), line
+
+
+@pytest.mark.slow
+def test_readme_shell_blocks_run_as_pasted_in_an_empty_folder(tmp_path):
+    """Every README shell line, in order, in one empty folder; `usp-jax` is this checkout's,
+    installing is left to the environment and the demo to its own test. Small inputs: make-pairs' bundled photos are cut to
+    two, so that the evaluation and tracking that follow take seconds."""
+    import shutil
+
+    from usp_jax.inference.images import sample_photos
+
+    photos = tmp_path / "two-photos"
+    photos.mkdir()
+    for _, path in sample_photos():
+        if path.name in ("coffee.png", "chelsea.png"):
+            shutil.copy(path, photos)
+    for line in shell_lines(ROOT / "README.md"):
+        if "pip install" in line or line.endswith("usp_jax demo"):  # the demo: test_cli's own
+            continue
+        line = line.replace("--images sample", f"--images {photos}")
+        command = re.sub(r"^(usp-jax|python3 -m usp_jax)\b", f"{sys.executable} -m usp_jax", line)
+        done = subprocess.run(
+            command,
+            shell=True,
+            cwd=tmp_path,
+            env={**child_env(), "PYTHONPATH": str(ROOT)},
+            capture_output=True,
+            text=True,
+            timeout=900,
+        )
+        assert done.returncode == 0, f"README line failed: {line}\n{done.stderr[-3000:]}"

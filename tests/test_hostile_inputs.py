@@ -140,7 +140,11 @@ def test_unwritable_outputs_are_one_line_before_any_work(tmp_path, capsys):
         (["detect", "a.png", "--json", str(afile / "k.json")], "detect", "afile"),
         (["demo", "--out", str(afile)], "demo", "is not a folder"),
         (["make-pairs", "--images", "x", "--out", str(afile / "p")], "make-pairs", "afile"),
-        (["train", "--workdir", str(afile), *TINY_RUN], "train", "exists and is not a folder"),
+        (
+            ["train", "--data", "sample", "--workdir", str(afile), *TINY_RUN],
+            "train",
+            "exists and is not a folder",
+        ),
     ]
     for argv, command, message in cases:
         assert main(argv) == 2, argv
@@ -151,7 +155,7 @@ def test_unwritable_outputs_are_one_line_before_any_work(tmp_path, capsys):
 def test_a_workdir_in_a_read_only_folder_is_one_line(tmp_path, capsys, monkeypatch):
     # Root ignores permission bits, so the check itself is made to answer "not writable".
     monkeypatch.setattr(workdir_lib.os, "access", lambda path, mode: False)
-    assert main(["train", "--workdir", str(tmp_path / "w"), *TINY_RUN]) == 2
+    assert main(["train", "--data", "sample", "--workdir", str(tmp_path / "w"), *TINY_RUN]) == 2
     assert "is not writable" in one_error_line(capsys, "train")
     assert not (tmp_path / "w").exists()
 
@@ -176,7 +180,7 @@ def _rewrite(source, target, change):
         ("missing", "is missing"),
         ("extra", "params/Extra/kernel is not part of"),
         ("config", "model_config entry is not a valid model config"),
-        ("strings", "not numbers"),
+        ("strings", "not floating-point weights"),
     ],
 )
 def test_a_bad_weights_file_is_one_line_naming_the_file_and_the_array(
@@ -286,6 +290,7 @@ def test_resuming_with_other_settings_is_refused_naming_the_keys(trained):
     assert _snapshot(trained) == before
 
 
+@pytest.mark.slow
 def test_an_incompatible_network_is_refused_even_when_changes_are_allowed(trained, capsys):
     before = _snapshot(trained)
     bigger = tiny_config(**{"model.descriptor_dim": 128})
@@ -322,6 +327,7 @@ def test_an_incompatible_network_is_refused_even_when_changes_are_allowed(traine
     assert _snapshot(trained) == before
 
 
+@pytest.mark.slow
 def test_allowed_changes_resume_and_are_recorded(tmp_path):
     workdir = tmp_path / "run"
     train.fit(tiny_config(), workdir, progress=False)
@@ -351,7 +357,7 @@ def test_a_damaged_config_record_is_one_line(tmp_path, capsys):
     workdir = tmp_path / "run"
     workdir.mkdir()
     (workdir / "config.json").write_text("{not json")
-    assert main(["train", "--workdir", str(workdir), *TINY_RUN]) == 2
+    assert main(["train", "--data", "sample", "--workdir", str(workdir), *TINY_RUN]) == 2
     assert "config.json is not a readable usp-jax config" in one_error_line(capsys, "train")
     assert (workdir / "config.json").read_text() == "{not json"
 
@@ -360,6 +366,7 @@ def test_a_damaged_config_record_is_one_line(tmp_path, capsys):
 # One run per workdir
 
 
+@pytest.mark.slow
 def test_a_second_train_on_a_locked_workdir_is_told_who_holds_it(tmp_path):
     """The second run is a real process: the lock is the kernel's, per open file."""
     workdir = tmp_path / "run"
@@ -455,6 +462,7 @@ sys.exit(main(sys.argv[1:]))
 """
 
 
+@pytest.mark.slow
 def test_a_full_disk_is_one_line_from_the_command(tmp_path):
     workdir = tmp_path / "run"
     result = subprocess.run(
@@ -474,6 +482,7 @@ def test_a_full_disk_is_one_line_from_the_command(tmp_path):
     os.geteuid() != 0 or not sys.platform.startswith("linux"),
     reason="mounting a small tmpfs needs root on Linux",
 )
+@pytest.mark.slow
 def test_a_really_full_tmpfs_is_one_line(tmp_path):
     mount = tmp_path / "small"
     mount.mkdir()
@@ -500,10 +509,10 @@ def test_a_really_full_tmpfs_is_one_line(tmp_path):
 
 
 def test_only_callbacks_into_a_closed_loop_are_kept_quiet():
-    from usp_jax.cli import _without_closed_loop_callbacks
+    from usp_jax.cli_errors import without_closed_loop_callbacks
 
     seen = []
-    hook = _without_closed_loop_callbacks(seen.append)
+    hook = without_closed_loop_callbacks(seen.append)
     kept = [RuntimeError("Event loop is still running"), ValueError("Event loop is closed")]
     for error in [RuntimeError("Event loop is closed"), *kept]:
         hook(types.SimpleNamespace(exc_value=error))

@@ -12,31 +12,17 @@ import shutil
 import cv2
 import numpy as np
 import pytest
-from conftest import SMALL_MODEL, TINY_RUN, tiny_config
+from conftest import SMALL_MODEL, TINY_RUN, one_error_line, snapshot, tiny_config
 
 from usp_jax import inference
 from usp_jax.cli import main
 from usp_jax.cli_options import build_parser
 from usp_jax.evaluation import pairs as pairs_lib
-from usp_jax.evaluation import sequences
+from usp_jax.evaluation import pairs_folder, sequences
 from usp_jax.inference import matching as matching_lib
 from usp_jax.inference import memory
 from usp_jax.training import checkpoint, train
 from usp_jax.training import workdir as workdir_lib
-
-
-def one_error_line(capsys, command: str) -> str:
-    err = [line for line in capsys.readouterr().err.splitlines() if "libpng warning" not in line]
-    assert len(err) == 1, err
-    assert err[0].startswith(f"usp-jax {command}: error: ")
-    return err[0]
-
-
-def snapshot(folder):
-    return {
-        p.relative_to(folder): p.read_bytes() if p.is_file() else None
-        for p in sorted(folder.rglob("*"))
-    }
 
 
 def write_rgb(path, image):
@@ -157,11 +143,11 @@ def test_make_pairs_writes_only_into_a_new_or_empty_folder_or_over_its_own_outpu
     for folder in (photos, hpatches):  # the user's photos; pairs not made by make-pairs
         before = snapshot(folder)
         assert main([*make, str(folder)]) == 2
-        assert f"no {pairs_lib.MANIFEST}" in one_error_line(capsys, "make-pairs")
+        assert f"no {pairs_folder.MANIFEST}" in one_error_line(capsys, "make-pairs")
         assert snapshot(folder) == before
     out = tmp_path / "out"
     assert main([*make, str(out)]) == 0
-    manifest = json.loads((out / pairs_lib.MANIFEST).read_text())
+    manifest = json.loads((out / pairs_folder.MANIFEST).read_text())
     assert manifest["complete"] and manifest["scenes"] == ["i_a", "v_a"]
     first = snapshot(out)
     assert main([*make, str(out)]) == 0  # a re-run replaces its own output, identically
@@ -268,8 +254,8 @@ def test_a_scene_that_fails_midway_leaves_nothing_half_made(tmp_path, photo, mon
     monkeypatch.setattr(pairs_lib.cv2, "imwrite", imwrite)
     with pytest.raises(OSError, match="could not write"):
         pairs_lib.make_pairs(photos, tmp_path / "o", size=(64, 96), num_views=2)
-    assert sorted(p.name for p in (tmp_path / "o").iterdir()) == [pairs_lib.MANIFEST]
-    assert not json.loads((tmp_path / "o" / pairs_lib.MANIFEST).read_text())["complete"]
+    assert sorted(p.name for p in (tmp_path / "o").iterdir()) == [pairs_folder.MANIFEST]
+    assert not json.loads((tmp_path / "o" / pairs_folder.MANIFEST).read_text())["complete"]
 
 
 # ---------------------------------------------------------------------------------------------

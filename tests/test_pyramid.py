@@ -46,6 +46,7 @@ def test_resize_level_is_an_antialiased_opencv_resize(photo):
 
 
 @pytest.mark.parametrize("refine", [False, True])
+@pytest.mark.slow
 def test_each_level_equals_detect_on_the_image_resized_to_it(variables, image, refine, monkeypatch):
     # Refined, each point's patch is read from its own level's image (pyramid._level_moves).
     # The pyramid re-scores refined points with a spread weight of its own; given the

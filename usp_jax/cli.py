@@ -10,7 +10,6 @@ shows its traceback.
 
 from __future__ import annotations
 
-import errno
 import json
 import logging
 import os
@@ -18,29 +17,13 @@ import pathlib
 import signal
 import sys
 import traceback
+import warnings
 
 import numpy as np
 
+from usp_jax import cli_errors
+from usp_jax.cli_errors import user_error
 from usp_jax.cli_options import parse_args
-
-_USER_ERRORS = (FileNotFoundError, ValueError, NotADirectoryError, IsADirectoryError)
-# OSErrors a user's paths or disk cause: reported in one line like the errors above.
-_USER_ERRNOS = frozenset(
-    {
-        errno.ENOENT,
-        errno.EACCES,
-        errno.EPERM,
-        errno.EROFS,
-        errno.ENOSPC,
-        errno.EDQUOT,
-        errno.EEXIST,
-        errno.ENOTDIR,
-        errno.EISDIR,
-        errno.ENAMETOOLONG,
-        errno.EFBIG,
-        errno.ELOOP,
-    }
-)
 
 
 def _check_output_file(path: str | None, what: str) -> None:
@@ -65,7 +48,16 @@ def _figure_file(path: str | None, what: str) -> str | None:
         return path
     from usp_jax.evaluation.plotting import figure_path
 
-    target = str(figure_path(path))
+    return _suffixed_file(path, what, figure_path)
+
+
+def _suffixed_file(path: str | None, what: str, suffixed) -> str | None:
+    """The file an option writes when ``suffixed`` may add a suffix to the name given, checked
+    as given too: an existing folder is refused, not written beside as ``FOLDER.png``."""
+    if not path:
+        return path
+    _check_output_file(path, what)
+    target = str(suffixed(path))
     _check_output_file(target, what)
     return target
 
@@ -120,6 +112,7 @@ def cmd_train(args) -> None:
         overrides=args.overrides,
         steps=args.steps,
     )
+    _check_data_given(args, cfg)
     who = ""
     if _distributed(args):
         launch = distributed.Launch(
@@ -129,8 +122,11 @@ def cmd_train(args) -> None:
             args.init_timeout,
             args.heartbeat_timeout,
         )
-        who = distributed.join(launch, cfg, report=lambda line: _user_error("train", line))
-    print(f"{who}training {args.config} config on {cfg.data.source} into {args.workdir}")
+        who = distributed.join(launch, cfg, report=lambda line: user_error("train", line))
+    print(
+        f"{who}training {args.config} config on {cfg.data.source} into {args.workdir},"
+        f" up to step {cfg.num_steps:,} at batch {cfg.batch_size}"
+    )
     state = train.fit(
         cfg,
         args.workdir,
@@ -146,6 +142,22 @@ def cmd_train(args) -> None:
         return 128 + signal.SIGTERM  # as if SIGTERM had ended it: the run is not finished
     print(f"{who}done: step {step}; checkpoints in {checkpoints}")
     return 0
+
+
+def _check_data_given(args, cfg) -> None:
+    """Raises ValueError when nothing chose the photos: no ``--data``, no ``data.source=`` and
+    a config that leaves the default, so that a forgotten flag does not start a long run on
+    the few bundled photos."""
+    from usp_jax.training.data import DataConfig
+
+    chosen = args.data is not None or any(
+        o.split("=", 1)[0].strip() == "data.source" for o in args.overrides
+    )
+    if not chosen and cfg.data.source == DataConfig().source:
+        raise ValueError(
+            "--data is required: an image folder, tfds:NAME[:SPLIT], or 'sample' for the few"
+            " photos bundled with the installed packages"
+        )
 
 
 def _distributed(args) -> bool:
@@ -187,26 +199,30 @@ def cmd_evaluate(args) -> None:
     enlarged = f", model on {args.upsample}x enlarged images" if args.upsample > 1 else ""
     enlarged += ", model matching across any rotation" if guide is not None else ""
     enlarged += ", model on an image pyramid (--any-scale)" if args.any_scale else ""
-    print(f"{args.hpatches} at {height}x{width}, top {args.top} points, NMS {args.nms}{enlarged}")
+    print(f"{args.hpatches}{enlarged}")  # the table's first line has the size, points and NMS
     print(protocol.format_table(results))
     if args.json:
         pathlib.Path(args.json).write_text(json.dumps(protocol.to_json(results), indent=1))
         print(f"wrote {args.json}")
     if args.plots and methods:
+        from usp_jax.quickstart import example_pair_files
+
         path = plotting.plot_example_pair(
             methods[0], args.hpatches, args.plots, args.res, args.top, args.nms
         )
-        keypoints = path.with_name(path.name.removesuffix("_matches.png") + "_keypoints.png")
-        print(f"wrote {keypoints}")
-        print(f"wrote {path}")
+        for written in example_pair_files(path):
+            print(f"wrote {written}")
 
 
 def cmd_make_pairs(args) -> None:
     from usp_jax.evaluation.pairs import make_pairs
+    from usp_jax.inference.images import sample_photos
 
     _check_output_folder(args.out, "--out")
+    # 'sample': the photos bundled with the installed packages, as train's --data takes it.
+    images = [path for _, path in sample_photos()] if args.images == "sample" else args.images
     scenes = make_pairs(
-        args.images,
+        images,
         args.out,
         seed=args.seed,
         size=args.size,
@@ -345,9 +361,8 @@ def cmd_export(args) -> None:
 
     if not (args.save_weights or args.artifact):
         raise ValueError("nothing to export: give --save-weights FILE.npz and/or --artifact FILE")
-    if args.save_weights:  # what is written and printed: NAME.npz for a NAME without .npz
-        args.save_weights = str(weights.weights_file(args.save_weights))
-    _check_output_file(args.save_weights, "--save-weights")
+    # What is written and printed: NAME.npz for a NAME without .npz.
+    args.save_weights = _suffixed_file(args.save_weights, "--save-weights", weights.weights_file)
     _check_output_file(args.artifact, "--artifact")
     detector = _load_detector(args)
     if args.save_weights:
@@ -360,10 +375,11 @@ def cmd_export(args) -> None:
 
 
 def cmd_demo(args) -> None:
-    from usp_jax.quickstart import demo
+    from usp_jax.quickstart import DEFAULT_OUT, demo
 
-    _check_output_folder(args.out, "--out")
-    demo(args.out, args.weights)
+    out = args.out or str(DEFAULT_OUT)
+    _check_output_folder(out, "--out")
+    demo(out, args.weights)
 
 
 def cmd_track(args) -> None:
@@ -394,12 +410,6 @@ COMMANDS = {
 }
 
 
-def _user_error(command: str, message: str) -> None:
-    """One line on stderr, however long the message (messages may quote multi-line values)."""
-    text = " ".join(message.split()) or "failed"
-    print(f"usp-jax {command}: error: {text}", file=sys.stderr)
-
-
 def main(argv: list[str] | None = None) -> int:
     """Runs the command; returns its exit status (0, 2 for a user error, 130 if interrupted).
 
@@ -408,8 +418,9 @@ def main(argv: list[str] | None = None) -> int:
     into a closed asyncio loop while the interpreter shuts down, each printing a traceback.
     """
     if argv is None:
-        sys.unraisablehook = _without_closed_loop_callbacks(sys.unraisablehook)
-    code = _main(argv)
+        sys.unraisablehook = cli_errors.without_closed_loop_callbacks(sys.unraisablehook)
+    with warnings.catch_warnings():  # _main's plain warning lines end with the command
+        code = _main(argv)
     if argv is None and code == 2:
         sys.stdout.flush()
         sys.stderr.flush()
@@ -417,23 +428,6 @@ def main(argv: list[str] | None = None) -> int:
         os.dup2(quiet, 2)  # the error line is out; native threads' late prints are not
         os._exit(code)
     return code
-
-
-def _without_closed_loop_callbacks(hook):
-    """``hook`` (a ``sys.unraisablehook``) minus TensorStore's callbacks into a closed loop.
-
-    A checkpoint save that fails (a full disk) ends orbax's asyncio loop while TensorStore
-    still finishes its other writes; each finished write then tries to wake the closed loop
-    and prints a traceback from a native thread, hundreds of them, racing train's one error
-    line. They say nothing the error line does not.
-    """
-
-    def filtered(unraisable) -> None:
-        error = unraisable.exc_value
-        if not (isinstance(error, RuntimeError) and str(error) == "Event loop is closed"):
-            hook(unraisable)
-
-    return filtered
 
 
 def _main(argv: list[str] | None) -> int:
@@ -451,51 +445,29 @@ def _main(argv: list[str] | None) -> int:
     if not args.verbose:
         logging.getLogger("absl").setLevel(logging.CRITICAL)
         logging.getLogger("asyncio").setLevel(logging.CRITICAL)
+    warnings.showwarning = cli_errors.plain_warnings(args.command, warnings.showwarning)
     from usp_jax.training import distributed
 
     try:
         code = COMMANDS[args.command](args) or 0
     except BaseException as err:
-        code, message = _classify(err)
+        code, message = cli_errors.classify(err)
         if distributed.joined():  # a multi-process run ends in every process
             own = message or (
                 f"{type(err).__name__}: {distributed.first_line(err)} (its traceback is in its log)"
             )
 
-            def show(text: str) -> None:
+            def report(text: str) -> None:
                 if text != own:  # another process failed first: its error, not the broken link
-                    _user_error(args.command, text)
+                    user_error(args.command, text)
                 elif message is None:
                     traceback.print_exc()
                 else:
-                    _show(args.command, code, message)
+                    cli_errors.show(args.command, code, message)
 
-            distributed.leave_after_failure(code, own, show)
+            distributed.leave_after_failure(code, own, report)
         if message is None:
             raise
-        _show(args.command, code, message)
+        cli_errors.show(args.command, code, message)
         return code
     return code
-
-
-def _classify(err: BaseException) -> tuple[int, str | None]:
-    """(exit status, one-line message) of a failure; the message is None for an internal error
-    (a bug), which shows its traceback instead."""
-    from usp_jax.training.distributed import DistributedError
-    from usp_jax.training.metrics import TrainingDiverged
-    from usp_jax.training.workdir import WorkdirError
-
-    if isinstance(err, KeyboardInterrupt):
-        return 130, "interrupted"
-    user = isinstance(err, (*_USER_ERRORS, TrainingDiverged, WorkdirError, DistributedError))
-    if user or (isinstance(err, OSError) and err.errno in _USER_ERRNOS):
-        named = isinstance(err, OSError) and err.filename and err.strerror
-        return 2, f"{err.filename}: {err.strerror}" if named else str(err)
-    return 1, None
-
-
-def _show(command: str, code: int, message: str) -> None:
-    if code == 130:
-        print(f"usp-jax {command}: {message}", file=sys.stderr)
-    else:
-        _user_error(command, message)

@@ -8,6 +8,7 @@ from __future__ import annotations
 import argparse
 import math
 
+from usp_jax.core.model import CELL
 from usp_jax.inference.detector import MAX_SIDE
 from usp_jax.inference.weights import DEFAULT_PRETRAINED, PRETRAINED
 
@@ -170,9 +171,20 @@ def _add_nms_radius(parser, default: float, help: str) -> None:
     parser.add_argument("--nms", type=_radius, default=default, help=help)
 
 
-def _add_max_side(parser, help: str) -> None:
-    """``--max-side``: the longest side the network sees (``Detector``'s max_side; detect, match)."""
-    parser.add_argument("--max-side", type=_non_negative, default=MAX_SIDE, metavar="PX", help=help)
+def _add_max_side(parser, help: str, flag: str = "--max-side", default: int | None = MAX_SIDE):
+    """``--max-side``: the longest side the network sees (``Detector``'s max_side; detect, match,
+    track; track's ``--network-side`` too): 0 or at least one 8 px cell."""
+    parser.add_argument(flag, type=_side, default=default, metavar="PX", help=help)
+
+
+def _side(text: str) -> int:
+    """A longest side in px: 0 (native size) or ``CELL`` px and more (``--max-side``)."""
+    value = _non_negative(text)
+    if 0 < value < CELL:
+        raise argparse.ArgumentTypeError(
+            f"{text!r} is under {CELL} px, one cell; give 0 (native size) or {CELL} or more"
+        )
+    return value
 
 
 class _HelpFormatter(argparse.HelpFormatter):

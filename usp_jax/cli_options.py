@@ -4,8 +4,6 @@ built from the shared argument types and options of ``cli_arguments``."""
 from __future__ import annotations
 
 import argparse
-import pathlib
-import tempfile
 
 from usp_jax.cli_arguments import (  # noqa: F401 (cli_track builds on them too)
     MAX_RESOLUTION,
@@ -47,6 +45,7 @@ RANGES: dict[str, tuple[float, float]] = {
     "--repeats": (1, 1000),
     "--nms": (0, 100_000),  # past any image's diagonal one point survives
     "--max-side": (0, MAX_RESOLUTION),
+    "--network-side": (0, MAX_RESOLUTION),
     "--every": (1, 10**6),
     "--max-frames": (1, 10**9),
 }
@@ -84,7 +83,11 @@ def _add_train(subparsers) -> None:
     p = subparsers.add_parser(
         "train", help="self-supervised training (resumes an existing workdir)"
     )
-    p.add_argument("--data", help="image folder, tfds:NAME[:SPLIT], or 'sample' (bundled photos)")
+    p.add_argument(
+        "--data",
+        help="the photos: an image folder, tfds:NAME[:SPLIT], or 'sample' (the few bundled with"
+        " the installed packages); required unless the --config file sets data.source",
+    )
     p.add_argument(
         "--workdir", required=True, help="checkpoints, config.json, metrics, TensorBoard"
     )
@@ -211,7 +214,8 @@ def _add_make_pairs(subparsers) -> None:
         "--images",
         required=True,
         metavar="DIR",
-        help="folder of photos; each gives a v_ (viewpoint) and an i_ (light) scene",
+        help="folder of photos, or 'sample' (the photos bundled with the installed packages);"
+        " each gives a v_ (viewpoint) and an i_ (light) scene",
     )
     p.add_argument(
         "--out",
@@ -395,8 +399,8 @@ def _add_demo(subparsers) -> None:
     )
     p.add_argument(
         "--out",
-        default=str(pathlib.Path(tempfile.gettempdir()) / "usp-jax-demo"),
-        help="folder for the pairs and PNGs",
+        metavar="DIR",
+        help="folder for the pairs and PNGs (default: usp-jax-demo in the current folder)",
     )
     _add_weights_name(p)
 
@@ -453,6 +457,12 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
         and all("=" in arg and not arg.startswith("-") for arg in extra)
     ):
         args.overrides += extra
-    elif extra:
-        parser.error(f"unrecognized arguments: {' '.join(extra)}")
+    elif extra:  # the subcommand's error: its prefix, and its own -h named
+        _subcommand(parser, args.command).error(f"unrecognized arguments: {' '.join(extra)}")
     return args
+
+
+def _subcommand(parser: argparse.ArgumentParser, name: str) -> argparse.ArgumentParser:
+    """The parser of subcommand ``name`` of ``parser``."""
+    (commands,) = [a for a in parser._actions if isinstance(a, argparse._SubParsersAction)]
+    return commands.choices[name]

@@ -66,12 +66,12 @@ def add_parser(subparsers) -> None:
         p,
         f"shrink frames longer than this first, every method alike (default {MAX_SIDE}; 0: never)",
     )
-    p.add_argument(
-        "--network-side",
-        type=options._non_negative,
-        metavar="PX",
-        help=f"the network detects on a copy of each frame at most this long, its points mapped"
+    options._add_max_side(
+        p,
+        f"the network detects on a copy of each frame at most this long, its points mapped"
         f" back to the frame's pixels (default {VIDEO_SIDE}; 0: the frame itself)",
+        flag="--network-side",
+        default=None,
     )
     p.add_argument(
         "--every", type=options._positive, default=1, metavar="N", help="track every N-th frame"

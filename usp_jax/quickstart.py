@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import pathlib
 import sys
-import tempfile
 import time
 
 from usp_jax.evaluation import plotting, protocol
@@ -20,8 +19,8 @@ from usp_jax.inference.images import sample_photos
 
 #: Package photos held out of the shipped weights' training corpus (experiments/build_corpus.py).
 DEMO_PHOTOS = ("coffee.png", "chelsea.png", "rocket.jpg")
-#: Where the demo writes when no folder is given.
-DEFAULT_OUT = pathlib.Path(tempfile.gettempdir()) / "usp-jax-demo"
+#: Where the demo writes when no folder is given: under the current folder, the user's own.
+DEFAULT_OUT = pathlib.Path("usp-jax-demo")
 #: What the table's columns mean, one line each (docs: the evaluation protocol; paper section 5).
 METRIC_LEGEND = (
     "RS: repeatability, the share of points found again within 3 px in the other image (higher"
@@ -72,13 +71,21 @@ def demo(
     results = protocol.evaluate(
         methods, out / "pairs", height=240, width=320, top_k=300, nms=0, progress=True
     )
-    print(f"\n240x320, top 300 points, pairs made from {about}")
-    print(protocol.format_table(results))
+    print(f"\npairs made from {about}")
+    print(protocol.format_table(results))  # its first line: the size, points and NMS
     print("\n" + "\n".join(METRIC_LEGEND))
     matches = plotting.plot_example_pair(methods[0], out / "pairs", out, (240, 320), 300, 0)
-    print(f"wrote {matches}")
+    for path in example_pair_files(matches):
+        print(f"wrote {path}")
     print(f"demo finished in {time.perf_counter() - start:.0f} s; outputs in {out}")
     return results
+
+
+def example_pair_files(matches: pathlib.Path) -> list[pathlib.Path]:
+    """The PNGs ``plotting.plot_example_pair`` writes, given the matches PNG it returns: the
+    first image's keypoints beside it, then the matches."""
+    keypoints = matches.with_name(matches.name.removesuffix("_matches.png") + "_keypoints.png")
+    return [keypoints, matches]
 
 
 def _short_training(workdir: pathlib.Path) -> Detector:

@@ -24,18 +24,12 @@ that would still reach past the photo zoom out less, just enough to fit (`zoom.f
 
 Output is deterministic for a seed (and a given order of the source list).
 
-Nothing of the user's is overwritten or mixed into: the output folder must be new, empty, or an
-earlier make-pairs output, recognised by its manifest ``make-pairs.json`` (the settings, the
-source photos and the scenes it holds). A re-run over an earlier output replaces it: its scenes
-are rewritten or removed, and any entry the manifest does not name makes the run refuse. Every
-scene is written into a temporary folder and renamed into place once complete, so a failed or
-killed run leaves no half-made scene; the manifest says ``"complete": false`` until the run ends.
+Nothing of the user's is overwritten or mixed into (``evaluation.pairs_folder``).
 """
 
 from __future__ import annotations
 
 import dataclasses
-import json
 import math
 import shutil
 import warnings
@@ -53,6 +47,7 @@ from usp_jax.core.geometry import (
     sample_window_homography,
     window_origin,
 )
+from usp_jax.evaluation.pairs_folder import earlier_scenes, write_manifest, write_scene
 from usp_jax.evaluation.zoom import check_zoom, fitting_zoom, pair_zooms, render, zoomed
 from usp_jax.inference.images import IMAGE_SUFFIXES, read_image
 
@@ -67,10 +62,6 @@ HARDEST_VIEW = HomographyConfig(
 )
 
 
-#: The manifest of a make-pairs output folder (module docstring).
-MANIFEST = "make-pairs.json"
-#: Suffix of a scene's folder while it is written; renamed to the scene's name once complete.
-_PARTIAL = ".partial"
 #: Seeds are 32-bit: jax.random.PRNGKey and numpy's generators take them alike.
 MAX_SEED = 2**32 - 1
 
@@ -194,76 +185,6 @@ def _illumination_change(
     return np.clip(changed, 0.0, 1.0)
 
 
-def _write_scene(
-    scene: Path, views: Sequence[np.ndarray], homographies: Sequence[np.ndarray]
-) -> None:
-    """Writes uint8 RGB views as 1.ppm.. (BGR on disk) and homographies[k] (image 1 -> k+2) as H_1_k,
-    into a temporary folder renamed to ``scene`` once complete (replacing an earlier one)."""
-    partial = scene.with_name("." + scene.name + _PARTIAL)  # hidden: never read as a scene
-    shutil.rmtree(partial, ignore_errors=True)
-    partial.mkdir(parents=True)
-    try:
-        for index, view in enumerate(views, start=1):
-            path = partial / f"{index}.ppm"
-            if not cv2.imwrite(str(path), cv2.cvtColor(view, cv2.COLOR_RGB2BGR)):
-                raise OSError(f"could not write {path}")
-        for index, homography in enumerate(homographies, start=2):
-            np.savetxt(partial / f"H_1_{index}", homography)
-    except BaseException:
-        shutil.rmtree(partial, ignore_errors=True)
-        raise
-    if scene.exists():
-        shutil.rmtree(scene)
-    partial.rename(scene)
-
-
-def _own_name(name: object) -> bool:
-    """Whether a manifest's scene name is one make-pairs writes (never a path elsewhere)."""
-    return isinstance(name, str) and name[:2] in ("v_", "i_") and Path(name).name == name
-
-
-def earlier_scenes(out_dir: str | Path) -> list[str]:
-    """The scenes of an earlier make-pairs run in ``out_dir`` (none for a new or empty folder).
-
-    Raises ValueError when the folder holds anything else: data without a manifest, or an entry
-    its manifest does not name. Scenes' temporary folders (``.NAME.partial``) count as its own.
-    """
-    out_dir = Path(out_dir)
-    if not out_dir.is_dir():
-        return []
-    entries = sorted(p.name for p in out_dir.iterdir())
-    if not entries:
-        return []
-    manifest = out_dir / MANIFEST
-    if MANIFEST not in entries:
-        raise ValueError(
-            f"{out_dir} holds {len(entries)} entries (e.g. {entries[0]}) and is not a make-pairs"
-            f" output (no {MANIFEST}); give a new or empty folder"
-        )
-    try:
-        scenes = json.loads(manifest.read_text())["scenes"]
-    except (OSError, ValueError, TypeError, KeyError) as error:
-        raise ValueError(f"{manifest} is not a readable make-pairs manifest ({error})") from None
-    if not isinstance(scenes, list) or not all(_own_name(name) for name in scenes):
-        raise ValueError(f"{manifest}: its scenes are not a list of v_*/i_* folder names")
-    own = {MANIFEST, *scenes, *("." + name + _PARTIAL for name in scenes)}
-    foreign = [name for name in entries if name not in own]
-    if foreign:
-        raise ValueError(
-            f"{out_dir / foreign[0]} was not written by the make-pairs run of {manifest};"
-            " make-pairs replaces only its own output: move it or give another folder"
-        )
-    return scenes
-
-
-def _write_manifest(out_dir: Path, settings: dict, scenes: Sequence[str], complete: bool) -> None:
-    """The manifest (module docstring), replaced atomically."""
-    partial = out_dir / ("." + MANIFEST + _PARTIAL)
-    record = {"made_by": "usp-jax make-pairs", "complete": complete, **settings}
-    partial.write_text(json.dumps({**record, "scenes": sorted(scenes)}, indent=1) + "\n")
-    partial.replace(out_dir / MANIFEST)
-
-
 def _view_window(
     height: int, width: int, rotated: bool, zoom: tuple[float, float] | None
 ) -> tuple[int, int]:
@@ -371,6 +292,43 @@ def make_pairs(
         anything is written.
     Unreadable photos are skipped with a warning naming them.
     """
+    _check_settings(size, num_views, kinds, seed)
+    _check_rotation(rotation, rotation_angles)
+    plan = _ScenePlan.of(*size, num_views, seed, rotation, rotation_angles, check_zoom(zoom))
+    sources = _list_sources(images)
+    out_dir = Path(out_dir)
+    earlier = earlier_scenes(out_dir)
+    settings = plan.settings(kinds, sources)
+    planned = [f"{kind}_{path.stem}" for path in sources for kind in ("v", "i") if kind in kinds]
+    scenes: list[Path] = []
+    for index, path in enumerate(
+        tqdm(sources, desc="make-pairs", unit="photo", disable=not progress)
+    ):
+        try:
+            photo = _fit_to_cover(read_image(path), *plan.source_size)
+        except ValueError:
+            warnings.warn(f"skipping unreadable image {path}", stacklevel=2)
+            continue
+        frames, views = plan.render(photo, index)
+        if not scenes:  # the first scene: only now is anything written
+            out_dir.mkdir(parents=True, exist_ok=True)
+            # Until the run ends the manifest names every scene it may leave, so that a re-run
+            # after a failure recognises them all.
+            write_manifest(out_dir, settings, set(earlier) | set(planned), complete=False)
+        scenes += _write_scenes(
+            out_dir, path.stem, frames, views, kinds, plan.strengths, [seed, index]
+        )
+    if not scenes:
+        raise FileNotFoundError(f"none of the {len(sources)} source images could be read")
+    written = {scene.name for scene in scenes}
+    for name in set(earlier) - written:  # an earlier run's scene this run does not make
+        shutil.rmtree(out_dir / name, ignore_errors=True)
+    write_manifest(out_dir, settings, written, complete=True)
+    return scenes
+
+
+def _check_settings(size: tuple[int, int], num_views: int, kinds: Sequence[str], seed) -> None:
+    """Raises ValueError for a size, view count, kinds or seed :func:`make_pairs` cannot use."""
     height, width = size
     if height < 2 or width < 2:
         raise ValueError(f"size must be at least (2, 2), got {size}")
@@ -381,87 +339,120 @@ def make_pairs(
     integer = isinstance(seed, (int, np.integer)) and not isinstance(seed, bool)
     if not integer or not 0 <= seed <= MAX_SEED:
         raise ValueError(f"seed must be an integer from 0 to {MAX_SEED}, got {seed!r}")
-    _check_rotation(rotation, rotation_angles)
-    zoom = check_zoom(zoom)
-    rotated = rotation is not None or rotation_angles is not None
-    sources = _list_sources(images)
-    out_dir = Path(out_dir)
-    earlier = earlier_scenes(out_dir)
-    settings = {
-        "seed": int(seed),
-        "size": [height, width],
-        "num_views": num_views,
-        "kinds": list(kinds),
-        "rotation": rotation,
-        "rotation_angles": None if rotation_angles is None else list(rotation_angles),
-        "zoom": None if zoom is None else list(zoom),
-        "sources": [str(path) for path in sources],
-    }
-    window = _view_window(height, width, rotated, zoom)
-    # The photo is prepared at the size whose REFERENCE_VIEW crop has the output size: views are then
-    # resampled about 1:1 instead of enlarged. Its pixel frame is mapped onto the window, and the window onto
-    # the frame; that mapping cancels in H_1_k = Hk @ inv(H1).
-    source_height = math.ceil(window[0] / REFERENCE_VIEW.patch_ratio)
-    source_width = math.ceil(window[1] / REFERENCE_VIEW.patch_ratio)
-    to_frame = np.diag(
-        [(window[1] - 1) / (source_width - 1), (window[0] - 1) / (source_height - 1), 1.0]
-    )
-    if window != (height, width):
-        origin_x, origin_y = window_origin(height, width, window)
-        to_frame = (
-            np.array([[1.0, 0.0, -origin_x], [0.0, 1.0, -origin_y], [0.0, 0.0, 1.0]]) @ to_frame
+
+
+@dataclasses.dataclass(frozen=True)
+class _ScenePlan:
+    """How every scene of one run is drawn: the output size, the window views are cut from, the
+    size the photo is prepared at, the map from its pixels into the window's frame, and the
+    homography settings of images 1..N with the strengths of images 2..N."""
+
+    height: int
+    width: int
+    num_views: int
+    seed: int
+    rotation: float | None
+    rotation_angles: tuple[float, ...] | None
+    zoom: tuple[float, float] | None
+    window: tuple[int, int]
+    source_size: tuple[int, int]
+    to_frame: np.ndarray
+    configs: tuple[HomographyConfig, ...]
+    strengths: tuple[float, ...]
+
+    @classmethod
+    def of(
+        cls, height: int, width: int, num_views: int, seed: int, rotation, rotation_angles, zoom
+    ) -> _ScenePlan:
+        """The plan of a run of :func:`make_pairs`' settings (checked already)."""
+        rotated = rotation is not None or rotation_angles is not None
+        window = _view_window(height, width, rotated, zoom)
+        # The photo is prepared at the size whose REFERENCE_VIEW crop has the output size: views
+        # are then resampled about 1:1 instead of enlarged. Its pixel frame is mapped onto the
+        # window, and the window onto the frame; that mapping cancels in H_1_k = Hk @ inv(H1).
+        source_height = math.ceil(window[0] / REFERENCE_VIEW.patch_ratio)
+        source_width = math.ceil(window[1] / REFERENCE_VIEW.patch_ratio)
+        to_frame = np.diag(
+            [(window[1] - 1) / (source_width - 1), (window[0] - 1) / (source_height - 1), 1.0]
         )
-    strengths = [(k - 1) / (num_views - 1) for k in range(2, num_views + 1)]  # of images 2..N
-    configs = [REFERENCE_VIEW] + [_view_config(strength) for strength in strengths]
-    planned = [f"{kind}_{path.stem}" for path in sources for kind in ("v", "i") if kind in kinds]
-    scenes: list[Path] = []
-    for index, path in enumerate(
-        tqdm(sources, desc="make-pairs", unit="photo", disable=not progress)
-    ):
-        try:
-            photo = _fit_to_cover(read_image(path), source_height, source_width)
-        except ValueError:
-            warnings.warn(f"skipping unreadable image {path}", stacklevel=2)
-            continue
-        key = jax.random.fold_in(jax.random.PRNGKey(seed), index)
-        turns = (
-            pair_rotations(
-                index, num_views, seed=seed, rotation=rotation, rotation_angles=rotation_angles
+        if window != (height, width):
+            origin_x, origin_y = window_origin(height, width, window)
+            shift = np.array([[1.0, 0.0, -origin_x], [0.0, 1.0, -origin_y], [0.0, 0.0, 1.0]])
+            to_frame = shift @ to_frame
+        strengths = tuple((k - 1) / (num_views - 1) for k in range(2, num_views + 1))
+        configs = (REFERENCE_VIEW, *(_view_config(strength) for strength in strengths))
+        angles = None if rotation_angles is None else tuple(rotation_angles)
+        source_size = (source_height, source_width)
+        settings = (height, width, num_views, int(seed), rotation, angles, zoom)
+        return cls(*settings, window, source_size, to_frame, configs, strengths)
+
+    def settings(self, kinds: Sequence[str], sources: Sequence[Path]) -> dict:
+        """The settings a manifest records, with the scene ``kinds`` and source photos."""
+        angles = self.rotation_angles
+        return {
+            "seed": self.seed,
+            "size": [self.height, self.width],
+            "num_views": self.num_views,
+            "kinds": list(kinds),
+            "rotation": self.rotation,
+            "rotation_angles": None if angles is None else list(angles),
+            "zoom": None if self.zoom is None else list(self.zoom),
+            "sources": [str(path) for path in sources],
+        }
+
+    def render(self, photo: np.ndarray, index: int) -> tuple[list[np.ndarray], list[np.ndarray]]:
+        """Source photo ``index``'s (homographies [3, 3] of images 1..N in the frame, uint8
+        views); its pair zooms are lowered where a view would reach past the photo."""
+        height, width, seed = self.height, self.width, self.seed
+        turns = None
+        if self.rotation is not None or self.rotation_angles is not None:
+            turns = pair_rotations(
+                index,
+                self.num_views,
+                seed=seed,
+                rotation=self.rotation,
+                rotation_angles=self.rotation_angles,
             )
-            if rotated
-            else None
-        )
-        frames = _sample_frames(key, configs, turns, height, width, window)
+        zooms = pair_zooms(index, self.num_views, self.zoom, seed=seed)
+        key = jax.random.fold_in(jax.random.PRNGKey(seed), index)
+        frames = _sample_frames(key, self.configs, turns, height, width, self.window)
         zooms = [1.0] + [
-            fitting_zoom(frame @ to_frame, z, height, width, photo.shape)
-            for frame, z in zip(frames[1:], pair_zooms(index, num_views, zoom, seed=seed))
+            fitting_zoom(frame @ self.to_frame, z, height, width, photo.shape)
+            for frame, z in zip(frames[1:], zooms)
         ]
         frames = [zoomed(frame, z, height, width) for frame, z in zip(frames, zooms)]
-        # Every view lies inside the photo, so the black constant border never shows (a test checks it).
+        # Every view lies inside the photo, so the black constant border never shows (a test
+        # checks it).
         views = [
-            render(photo, frame @ to_frame, z, height, width) for frame, z in zip(frames, zooms)
+            render(photo, frame @ self.to_frame, z, height, width)
+            for frame, z in zip(frames, zooms)
         ]
-        if not scenes:  # the first scene: only now is anything written
-            out_dir.mkdir(parents=True, exist_ok=True)
-            # Until the run ends the manifest names every scene it may leave, so that a re-run
-            # after a failure recognises them all.
-            _write_manifest(out_dir, settings, set(earlier) | set(planned), complete=False)
-        if "v" in kinds:
-            reference_inverse = np.linalg.inv(frames[0])
-            homographies = [frame @ reference_inverse for frame in frames[1:]]
-            _write_scene(out_dir / f"v_{path.stem}", views, [h / h[2, 2] for h in homographies])
-            scenes.append(out_dir / f"v_{path.stem}")
-        if "i" in kinds:
-            rng = np.random.default_rng([seed, index])
-            reference = views[0].astype(np.float64) / 255.0
-            changed = [_illumination_change(reference, strength, rng) for strength in strengths]
-            lit = [views[0]] + [np.round(255.0 * image).astype(np.uint8) for image in changed]
-            _write_scene(out_dir / f"i_{path.stem}", lit, [np.eye(3)] * (num_views - 1))
-            scenes.append(out_dir / f"i_{path.stem}")
-    if not scenes:
-        raise FileNotFoundError(f"none of the {len(sources)} source images could be read")
-    written = {scene.name for scene in scenes}
-    for name in set(earlier) - written:  # an earlier run's scene this run does not make
-        shutil.rmtree(out_dir / name, ignore_errors=True)
-    _write_manifest(out_dir, settings, written, complete=True)
-    return scenes
+        return frames, views
+
+
+def _write_scenes(
+    out_dir: Path,
+    stem: str,
+    frames: Sequence[np.ndarray],
+    views: Sequence[np.ndarray],
+    kinds: Sequence[str],
+    strengths: Sequence[float],
+    seed: list[int],
+) -> list[Path]:
+    """Writes one photo's ``v_STEM`` scene (``views``, H_1_k from ``frames``) and ``i_STEM``
+    scene (image 1 under lighting changes of ``strengths``, drawn from ``seed``), as ``kinds``
+    asks; returns the scene folders written."""
+    written = []
+    if "v" in kinds:
+        reference_inverse = np.linalg.inv(frames[0])
+        homographies = [frame @ reference_inverse for frame in frames[1:]]
+        write_scene(out_dir / f"v_{stem}", views, [h / h[2, 2] for h in homographies])
+        written.append(out_dir / f"v_{stem}")
+    if "i" in kinds:
+        rng = np.random.default_rng(seed)
+        reference = views[0].astype(np.float64) / 255.0
+        changed = [_illumination_change(reference, strength, rng) for strength in strengths]
+        lit = [views[0]] + [np.round(255.0 * image).astype(np.uint8) for image in changed]
+        write_scene(out_dir / f"i_{stem}", lit, [np.eye(3)] * len(strengths))
+        written.append(out_dir / f"i_{stem}")
+    return written

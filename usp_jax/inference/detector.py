@@ -40,6 +40,7 @@ from usp_jax.core.model import (
 )
 from usp_jax.inference import points, pyramid, weights
 from usp_jax.inference import refine as refine_lib
+from usp_jax.inference.compiled import BoundedJit
 from usp_jax.inference.features import Features
 from usp_jax.inference.memory import check_fits, measured_bytes_per_pixel
 from usp_jax.inference.nms import NEIGHBOUR_REACH, radius_nms
@@ -293,7 +294,7 @@ class Detector:
         any_scale: bool = False,
         refine: bool | str | pathlib.Path | None = None,
     ):
-        _check_top_n(top_n)
+        top_n = _check_top_n(top_n)
         if not all(math.isfinite(v) and v >= 0 for v in (nms_radius, border)):
             raise ValueError(
                 f"nms_radius and border must be finite and >= 0, got nms_radius={nms_radius},"
@@ -302,9 +303,7 @@ class Detector:
         integer = isinstance(upsample, (int, np.integer)) and not isinstance(upsample, bool)
         if not integer or upsample < 1:
             raise ValueError(f"upsample must be a positive integer, got {upsample!r}")
-        integer = isinstance(max_side, (int, np.integer)) and not isinstance(max_side, bool)
-        if not integer or max_side < 0:
-            raise ValueError(f"max_side must be an integer >= 0, got {max_side!r}")
+        max_side = check_max_side(max_side)
         if jax.default_backend() == "cpu":
             model_config = dataclasses.replace(model_config, dtype="float32")
         self.model_config = model_config
@@ -345,9 +344,7 @@ class Detector:
         self._function = functools.partial(
             pyramid.detect_pyramid if self.any_scale else _detect_padded, **options
         )
-        self._forward = jax.jit(
-            self._function, static_argnames="top_n", compiler_options=compiler_options()
-        )
+        self._forward = BoundedJit(self._function, compiler_options=compiler_options())
 
     def replace(self, **changes) -> Detector:
         """A detector of the same weights with ``changes`` to its options (``__init__``'s
@@ -484,6 +481,18 @@ class Detector:
 
 
 def _check_top_n(top_n: int | None) -> int | None:
-    if top_n is not None and top_n < 1:
-        raise ValueError(f"top_n must be positive or None, got {top_n}")
-    return top_n
+    """``top_n`` as an int or None; else a ValueError (2.5 or NaN would reach jit as a shape)."""
+    if top_n is None:
+        return None
+    integer = isinstance(top_n, (int, np.integer)) and not isinstance(top_n, bool)
+    if not integer or top_n < 1:
+        raise ValueError(f"top_n must be a positive integer or None, got {top_n!r}")
+    return int(top_n)
+
+
+def check_max_side(max_side: int) -> int:
+    """``max_side`` as an int: 0 (native size) or at least one ``CELL``; else a ValueError."""
+    integer = isinstance(max_side, (int, np.integer)) and not isinstance(max_side, bool)
+    if not integer or not (max_side == 0 or max_side >= CELL):
+        raise ValueError(f"max_side must be 0 or an integer >= {CELL}, got {max_side!r}")
+    return int(max_side)

@@ -41,6 +41,46 @@ def activation_bytes(model_config: ModelConfig, batch: int, height: int, width: 
     return int(_MARGIN * _VALUE_BYTES * values)
 
 
+def packing_bytes(model_config: ModelConfig, batch: int, height: int, width: int) -> int:
+    """Bytes XLA:CPU's convolutions reserve (address space, mostly never touched) on ``batch``
+    images of ``height x width`` network pixels: Eigen packs a 3x3 convolution's input as
+    [pixels, 9 C_in] before its matrix product, so the largest such layer asks for
+    4 x 9 x C_in bytes per pixel of its resolution at once, whatever is free. The paper
+    network's second full-resolution convolution (C_in 32: 1,152 B per pixel) makes a 6000x4000
+    photo ask for 28 GB, which the kernel refuses on a 24 GB machine (``std::bad_alloc``), while
+    4600x3400 (18 GB) runs with 4.5 GB resident."""
+    channels = model_config.backbone_channels
+    if model_config.backbone == "vgg":  # (C_in, 2^-level resolution) of each conv layer
+        layers = [(3, 0), (channels[0], 0)] + [(c, 1 + i // 2) for i, c in enumerate(channels[1:7])]
+    else:  # fast: one conv per resolution into it, then residual convs at 1/4 and 1/8
+        layers = [(3, 0), (channels[0], 1), (channels[1], 2), (channels[2], 2), (channels[3], 3)]
+    layers.append((channels[-1], 3))  # the heads' first convs
+    per_pixel = max(9 * c / 4**level for c, level in layers)
+    return int(_VALUE_BYTES * per_pixel * batch * height * width)
+
+
+def reservable_bytes() -> int | None:
+    """The largest single allocation the system grants (Linux' overcommit policy): RAM plus
+    swap under its default heuristic, the commit limit left under strict accounting, no limit
+    (None) when it always overcommits, or on an accelerator (Eigen packs only on CPU)."""
+    if jax.local_devices()[0].platform != "cpu":
+        return None
+    try:
+        mode = pathlib.Path("/proc/sys/vm/overcommit_memory").read_text().strip()
+        info = {
+            line.split(":")[0]: int(line.split()[1]) * 1024
+            for line in pathlib.Path("/proc/meminfo").read_text().splitlines()
+            if line.split()[1:2] and line.split()[1].isdigit()
+        }
+    except (OSError, ValueError, IndexError):
+        return None
+    if mode == "1":
+        return None
+    if mode == "2":
+        return info.get("CommitLimit", 0) - info.get("Committed_AS", 0)
+    return info.get("MemTotal", 0) + info.get("SwapTotal", 0) or None
+
+
 def available_bytes() -> int | None:
     """Memory free for the computation now: the device's free memory on an accelerator, else
     the host's ``MemAvailable`` (``/proc/meminfo``) within the process's cgroup limit, else
@@ -116,15 +156,23 @@ def check_fits(
     free = available_bytes()
     if free is not None and need > _CLEAR_SHARE * free and measure is not None:
         need = int(_MARGIN * measure() * batch * height * width)
-    if free is None or need <= free:
+    reserve = packing_bytes(model_config, batch, height * upsample, width * upsample)
+    limit = reservable_bytes()
+    if limit is not None and reserve > limit:  # an abort inside XLA, however much is free
+        need, free = reserve, limit
+        what = "to reserve for its convolutions, the system grants at most"
+    elif free is None or need <= free:
         _FITTED.add(key)
         return
+    else:
+        what = "for the network,"
     # The need grows with the pixel count: the side that fits, to whole cells.
     # A tenth below: smaller images pad to whole cells.
     side = max(CELL, int(0.9 * max(height, width) * math.sqrt(free / need)) // CELL * CELL)
     images = f"{batch} images" if batch > 1 else "an image"
     raise ImageTooLarge(
         f"{images} of {width}x{height} px{f' enlarged {upsample}x' if upsample > 1 else ''}"
-        f" needs about {need / 2**30:.1f} GiB for the network, {max(free, 0) / 2**30:.1f} GiB"
-        f" are free; detect on a smaller copy: --max-side {side} or less (max_side={side})"
+        f" needs about {need / 2**30:.1f} GiB {what} {max(free, 0) / 2**30:.1f} GiB"
+        f"{' are free' if what.endswith(',') else ''}; detect on a smaller copy:"
+        f" --max-side {side} or less (max_side={side})"
     )

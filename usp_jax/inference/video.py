@@ -42,6 +42,9 @@ def open_source(source: str, max_side: int = 0) -> Source:
     Raises FileNotFoundError for a missing path and ValueError for a camera that does not open,
     a folder with no image files or a video with no readable frame.
     """
+    from usp_jax.inference.detector import check_max_side
+
+    max_side = check_max_side(max_side)
     path = pathlib.Path(source).expanduser()
     if source.isdigit() and not path.exists():
         # OpenCV warns on stderr for each backend that fails; the error below says it once.

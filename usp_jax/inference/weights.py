@@ -14,6 +14,7 @@ import functools
 import importlib.resources
 import json
 import pathlib
+import re
 import zipfile
 
 import flax
@@ -62,8 +63,11 @@ def save_weights(
     returns the file written (:func:`weights_file`).
 
     Float16 halves the file; inference casts back to float32. Raises ValueError instead of
-    writing a value that float16 cannot hold (|x| > 65504), so no weight is silently lost.
+    writing a value that float16 cannot hold (|x| > 65504), so no weight is silently lost, and
+    for a ``path`` that is a folder (rather than writing ``FOLDER.npz`` beside it).
     """
+    if pathlib.Path(path).is_dir():
+        raise ValueError(f"weights file {path} is a folder, not a file")
     flat = flax.traverse_util.flatten_dict(
         {"params": variables["params"], "batch_stats": variables["batch_stats"]},
         sep=_SEPARATOR,
@@ -103,7 +107,7 @@ def load_weights(path: str | pathlib.Path) -> tuple[ModelConfig, dict]:
         try:
             model_config = settings.from_dict(json.loads(str(data[_CONFIG_KEY])), ModelConfig)
             settings.check_fields(model_config, "model.")
-        except (ValueError, TypeError, AttributeError) as error:
+        except (ValueError, TypeError, AttributeError, RecursionError) as error:
             raise ValueError(
                 f"{path}: its {_CONFIG_KEY} entry is not a valid model config"
                 f" ({type(error).__name__}: {str(error).splitlines()[0] if str(error) else ''})"
@@ -116,8 +120,10 @@ def load_weights(path: str | pathlib.Path) -> tuple[ModelConfig, dict]:
                 array = data[key]
             except (OSError, ValueError, zipfile.BadZipFile) as error:
                 raise ValueError(f"{path}: array {key} is not readable ({type(error).__name__})")
-            if array.dtype.kind not in "fiu":
-                raise ValueError(f"{path}: array {key} holds {array.dtype}, not numbers")
+            if array.dtype.kind != "f":  # integers would run, but no training writes them
+                raise ValueError(
+                    f"{path}: array {key} holds {array.dtype}, not floating-point weights"
+                )
             flat[key] = array.astype(np.float32)
     _check_arrays(path, model_config, flat)
     return model_config, flax.traverse_util.unflatten_dict(flat, sep=_SEPARATOR)
@@ -174,25 +180,36 @@ def read_checkpoint(path: str | pathlib.Path) -> tuple[dict, dict]:
     run that saved it trained on. Reads only what inference needs."""
     directory, step = resolve_checkpoint(path)
     if not (directory / str(step) / "state").is_dir():
-        raise ValueError(_damaged(directory, step, "it has no state/ folder"))
+        raise ValueError(damaged_checkpoint(directory, step, "it has no state/ folder"))
     try:
         return _read_step(directory, step)
     except Exception as error:  # damaged files: orbax's errors name neither file nor step
-        first = str(error).strip().splitlines()
-        problem = f"{type(error).__name__}: {first[0]}" if first else type(error).__name__
-        raise ValueError(_damaged(directory, step, problem)) from error
+        raise ValueError(damaged_checkpoint(directory, step, error)) from error
 
 
-def _damaged(directory: pathlib.Path, step: int, problem: str) -> str:
-    """The one line for an unreadable checkpoint: its folder, what is wrong, and the step
-    before it that a user may load instead (as ``train`` reports a damaged checkpoint)."""
+def damaged_checkpoint(
+    directory: pathlib.Path, step: int, problem: str | BaseException, resuming: bool = False
+) -> str:
+    """The one line for an unreadable checkpoint (loaded, or ``resuming`` a run): its folder,
+    what is wrong (an error's type and first line, cut short and without the object reprs of
+    the libraries underneath), and the step before it to use instead."""
+    if isinstance(problem, BaseException):
+        lines = str(problem).strip().splitlines()
+        text = re.sub(r"\s*<[^<>]*>", "", lines[0]) if lines else ""
+        text = text if len(text) <= 120 else text[:117] + "..."
+        problem = f"{type(problem).__name__}: {text}" if text else type(problem).__name__
     earlier = [int(p.name) for p in directory.iterdir() if p.name.isdigit() and int(p.name) < step]
-    instead = (
-        f"; the checkpoint before it is {directory / str(max(earlier))}, load that one or retrain"
-        if earlier
-        else "; there is no earlier checkpoint"
-    )
-    return f"checkpoint step {step} ({directory / str(step)}) is damaged: {problem}{instead}"
+    damaged = directory / str(step)
+    if not earlier:
+        instead = "; there is no earlier checkpoint"
+    elif resuming:
+        instead = (
+            f"; the checkpoint before it is step {max(earlier)}: move {damaged} away to resume"
+            " from that one, or use a new --workdir"
+        )
+    else:
+        instead = f"; the checkpoint before it is {directory / str(max(earlier))}, load that one"
+    return f"checkpoint step {step} ({damaged}) is damaged: {problem}{instead}"
 
 
 def _read_step(directory: pathlib.Path, step: int) -> tuple[dict, dict]:

@@ -186,8 +186,13 @@ def _coerce(text: str, annotation: Any, where: str) -> Any:
             value = ast.literal_eval(text)
             return tuple(value) if not isinstance(value, (int, float)) else (value,)
         return ast.literal_eval(text)
-    except (ValueError, SyntaxError):
-        raise ValueError(f"cannot read {text!r} as {annotation} for {where}") from None
+    except (ValueError, SyntaxError, RecursionError, MemoryError):  # nesting too deep to parse
+        raise ValueError(f"cannot read {_short(text)!r} as {annotation} for {where}") from None
+
+
+def _short(text: str, length: int = 60) -> str:
+    """``text`` cut to ``length`` characters for a one-line message (a value may be huge)."""
+    return text if len(text) <= length else text[: length - 3] + "..."
 
 
 def override(config: Config, assignments: list[str]) -> Config:
@@ -254,7 +259,12 @@ def _set(node: Any, path: list[str], text: str, key: str) -> Any:
             f"config key {key!r} is a section, not a value; set one of its fields ({names}),"
             f" e.g. {key}.{dataclasses.fields(current)[0].name}=..."
         )
-    return dataclasses.replace(node, **{path[0]: _coerce(text, hints[path[0]], key)})
+    value = _coerce(text, hints[path[0]], key)
+    try:
+        return dataclasses.replace(node, **{path[0]: value})
+    except (ValueError, TypeError) as error:  # a section's own check, which may not name it
+        wanted = str(hints[path[0]]).replace("typing.", "")
+        raise ValueError(f"config key {key}={_short(text)} (a {wanted}): {error}") from None
 
 
 def to_dict(config: Config) -> dict:

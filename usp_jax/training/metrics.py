@@ -5,7 +5,10 @@ of the collapses peers reported, and the stop on a non-finite loss.
 from __future__ import annotations
 
 import json
+import logging
 import pathlib
+
+log = logging.getLogger(__name__)
 
 
 class TrainingDiverged(RuntimeError):
@@ -54,12 +57,31 @@ def read_metrics(workdir: str | pathlib.Path) -> list[dict]:
     """The rows :class:`MetricsWriter` appended to ``WORKDIR/metrics.jsonl``, in the order written
     (``[]`` before the first log). A run resumed after a kill logs the steps after its last
     checkpoint a second time; the later row of a step is the one its kept weights went through.
-    A last line cut short by a kill or a full disk is skipped."""
+    A line that is not a row (cut short by a kill or a full disk, or damaged anywhere in the
+    file) is skipped, and the count of skipped lines is logged as a warning."""
     path = pathlib.Path(workdir) / "metrics.jsonl"
     if not path.is_file():
         return []
-    complete = path.read_text().split("\n")[:-1]  # text after the last newline is unfinished
-    return [json.loads(line) for line in complete if line.strip()]
+    rows, bad = [], []
+    for number, line in enumerate(path.read_text(errors="replace").split("\n"), start=1):
+        if not line.strip():
+            continue
+        try:
+            row = json.loads(line)
+        except (ValueError, RecursionError):
+            row = None
+        if isinstance(row, dict) and isinstance(row.get("step"), int):
+            rows.append(row)
+        else:
+            bad.append(number)
+    if bad:
+        log.warning(
+            "%s: skipped %d line(s) that are not metrics rows (line %s)",
+            path,
+            len(bad),
+            ", ".join(map(str, bad[:5])) + (", ..." if len(bad) > 5 else ""),
+        )
+    return rows
 
 
 def progress_postfix(metrics: dict[str, float], steps_per_s: float, batch_size: int) -> dict:

@@ -28,6 +28,7 @@ import numpy as np
 from jax.sharding import NamedSharding
 from jax.sharding import PartitionSpec as P
 
+from usp_jax.inference.weights import damaged_checkpoint
 from usp_jax.training import config as config_lib
 from usp_jax.training import distributed as multihost
 from usp_jax.training.metrics import (
@@ -52,6 +53,7 @@ from usp_jax.training.workdir import (
     check_resume,
     check_workdir_path,
     recorded_config,
+    with_resolved_paths,
 )
 
 log = logging.getLogger(__name__)
@@ -143,6 +145,7 @@ def fit(
     from usp_jax.training import data
 
     workdir = pathlib.Path(workdir).expanduser().absolute()
+    config = with_resolved_paths(config)  # one folder however typed, recorded as resolved
     num_steps = config.num_steps if num_steps is None else num_steps
     teacher = check_config(config)
     _check_num_steps(num_steps)
@@ -218,7 +221,8 @@ def _open_run(
         previous = recorded_config(workdir)
         changes = {}
         if previous is not None:
-            changes = check_resume(workdir, previous, config, allow_config_change)
+            resolved = with_resolved_paths(previous)
+            changes = check_resume(workdir, resolved, config, allow_config_change)
         # Every process has read the record before process 0 rewrites it below.
         _sync_processes("usp_jax: workdir checked")
         mesh = data_mesh()
@@ -264,9 +268,8 @@ def _restore_latest(mngr, state: TrainState, workdir: pathlib.Path) -> TrainStat
     try:
         state = checkpoint.restore_state(mngr, state)
     except Exception as error:  # a damaged checkpoint: one line, the cause chained
-        raise WorkdirError(
-            f"cannot restore checkpoint step {latest} of {workdir}: {_first_line(error)}"
-        ) from error
+        directory = workdir / "checkpoints"
+        raise WorkdirError(damaged_checkpoint(directory, latest, error, resuming=True)) from error
     log.info("resumed from step %d", int(state.step))
     return state
 
@@ -375,8 +378,12 @@ def _train_steps(
                     break
             mngr.wait_until_finished()
             finished = True
-        except (TrainingDiverged, KeyboardInterrupt):
+        except TrainingDiverged:
             raise
+        except KeyboardInterrupt:
+            if not single:  # the others would wait for this one's part of the save
+                raise
+            raise _save_interrupted(config, run, state, previous_metrics) from None
         except Exception as error:
             cause = _os_error_in(error)
             if cause is None:
@@ -398,6 +405,31 @@ def _train_steps(
         if run.lock is not None:
             run.lock.release()
     return state
+
+
+class Interrupted(KeyboardInterrupt):
+    """Training stopped by Ctrl-C (SIGINT); the message says from which step a rerun resumes."""
+
+
+def _save_interrupted(config, run: _Run, state: TrainState, metrics) -> Interrupted:
+    """Saves ``state`` on Ctrl-C, as a checkpoint would have, unless it is saved already or
+    its loss was not finite; returns the error that says which step a rerun resumes from."""
+    from usp_jax.training import checkpoint
+
+    step, latest = int(state.step), run.mngr.latest_step()
+    saved = f"; checkpoint step {step} saved in {run.workdir / 'checkpoints'}"
+    if step > (latest or 0):
+        if metrics is not None and not float(metrics["finite"]):
+            check_finite(metrics, step, run.mngr)  # a diverged state is not worth resuming
+        checkpoint.save(run.mngr, step, state, config)
+        run.mngr.wait_until_finished()
+    elif latest is None:
+        return Interrupted("interrupted before the first step; nothing to resume")
+    else:
+        saved = f"; its checkpoint is in {run.workdir / 'checkpoints'}"
+    return Interrupted(
+        f"interrupted at step {step}{saved}; rerun the same command to resume from step {step}"
+    )
 
 
 def _sync_processes(name: str) -> None:

@@ -85,15 +85,26 @@ def check_workdir_path(workdir: pathlib.Path) -> None:
     if problem:
         raise WorkdirError(f"workdir {workdir}{problem}")
     entries = sorted(p.name for p in workdir.iterdir()) if workdir.is_dir() else []
-    if entries and not WORKDIR_ENTRIES.intersection(entries):
+    others = [name for name in entries if name not in WORKDIR_ENTRIES]
+    if others and not _holds_a_run(workdir):
         raise WorkdirError(
-            f"workdir {workdir} holds {len(entries)} other entries (e.g. {entries[0]}) and is not"
-            " a training workdir (no config.json or checkpoints/); give a new or empty folder"
+            f"workdir {workdir} holds {len(others)} other entries (e.g. {others[0]}) and is not"
+            " a training workdir (no config.json, no checkpoint in checkpoints/); give a new or"
+            " empty folder"
         )
     for name in ("config.json", "checkpoints", "metrics.jsonl", "tensorboard"):
         path = workdir / name
         if path.exists() and not os.access(path, os.W_OK):
             raise WorkdirError(f"workdir {workdir}: {path} is not writable")
+
+
+def _holds_a_run(workdir: pathlib.Path) -> bool:
+    """Whether a run has written ``workdir``: its config record, or a checkpoint (an empty
+    ``checkpoints/`` beside other files may be anyone's)."""
+    checkpoints = workdir / "checkpoints"
+    return (workdir / "config.json").is_file() or (
+        checkpoints.is_dir() and any(checkpoints.iterdir())
+    )
 
 
 class WorkdirLock:
@@ -148,7 +159,8 @@ def recorded_config(workdir: pathlib.Path) -> config_lib.Config | None:
     if path.is_file():
         try:
             return config_lib.read(path)
-        except (ValueError, TypeError) as error:  # JSONDecodeError is a ValueError
+        # JSONDecodeError is a ValueError; JSON nested too deep a RecursionError.
+        except (ValueError, TypeError, AttributeError, RecursionError) as error:
             raise WorkdirError(
                 f"{path} is not a readable usp-jax config ({type(error).__name__}); the run's"
                 " record is damaged"
@@ -161,6 +173,30 @@ def recorded_config(workdir: pathlib.Path) -> config_lib.Config | None:
         except FileNotFoundError:
             return None
     return None
+
+
+def _resolved(spec: str) -> str:
+    """A path setting as the folder or file it names from here (``~`` and ``..`` resolved), so
+    that one folder compares equal however it is typed, and two folders of one relative name
+    from different directories do not; names that are no path (shipped weights, ``sample``,
+    ``tfds:``) and "" stay as they are."""
+    from usp_jax.inference.weights import PRETRAINED
+
+    if not spec or spec == "sample" or spec.startswith("tfds:") or spec in PRETRAINED:
+        return spec
+    return str(pathlib.Path(spec).expanduser().resolve())
+
+
+def with_resolved_paths(config: config_lib.Config) -> config_lib.Config:
+    """``config`` with its paths (``data.source``, ``init_weights``, ``distill.teacher``)
+    resolved (:func:`_resolved`). A workdir's record is stored so; an older record's relative
+    paths are read from the current directory, as that run read them from its own."""
+    return dataclasses.replace(
+        config,
+        data=dataclasses.replace(config.data, source=_resolved(config.data.source)),
+        init_weights=_resolved(config.init_weights),
+        distill=dataclasses.replace(config.distill, teacher=_resolved(config.distill.teacher)),
+    )
 
 
 def _state_layout(config: config_lib.Config) -> Any:
