@@ -118,9 +118,9 @@ def test_padding_does_not_move_points(detector, image):
 
 @pytest.mark.parametrize("top_n", [0, -1])
 def test_a_top_n_below_one_is_rejected_at_construction_and_per_call(detector, image, top_n):
-    with pytest.raises(ValueError, match="top_n must be positive"):
+    with pytest.raises(ValueError, match="top_n must be a positive integer"):
         detector.detect(image, top_n=top_n)
-    with pytest.raises(ValueError, match="top_n must be positive"):
+    with pytest.raises(ValueError, match="top_n must be a positive integer"):
         Detector(detector.variables, detector.model_config, top_n=top_n)
 
 
