@@ -360,7 +360,15 @@ def test_ctrl_c_in_train_saves_a_checkpoint_and_names_the_step_it_resumes_from(t
 
     workdir = tmp_path / "w"
     argv = [*USP_JAX, *train_args(workdir, 10_000, *TINY_RUN, "checkpoint_every=5000")]
-    process = subprocess.Popen(argv, env=child_env(), stderr=subprocess.PIPE, text=True)
+    # A shell starts background jobs with SIGINT ignored, and an ignored signal stays ignored
+    # across exec: give the child Ctrl-C's default, as a terminal would.
+    process = subprocess.Popen(
+        argv,
+        env=child_env(),
+        stderr=subprocess.PIPE,
+        text=True,
+        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),
+    )
     deadline = time.time() + 600
     while time.time() < deadline and len(metrics_lib.read_metrics(workdir)) < 3:
         time.sleep(0.5)
