@@ -190,7 +190,8 @@ def true_positions(pair: RealPair, points1: np.ndarray) -> np.ndarray:
         inside = (columns >= 0) & (columns < width) & (rows >= 0) & (rows < height)
         d = np.full(len(points1), np.nan)
         d[inside] = pair.disparity[rows[inside], columns[inside]]
-        found = np.stack([points1[:, 0] - d, points1[:, 1] + 0 * d], axis=1)
+        found = points1 - np.stack([d, np.zeros_like(d)], axis=1)
+        found[np.isnan(d)] = np.nan  # the whole point is unknown, not only its x
     return found
 
 
