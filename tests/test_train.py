@@ -393,3 +393,28 @@ def test_a_run_on_context_windows_trains_and_logs_how_much_of_b_is_real(tmp_path
     rows = metrics_lib.read_metrics(tmp_path)
     assert [r["step"] for r in rows] == [1, 2]
     assert all(np.isfinite(r["loss"]) and 0.5 < r["data/valid_b"] <= 1.0 for r in rows)
+
+
+def test_ctrl_c_inside_a_step_is_raised_after_the_step_has_returned_its_state():
+    import os
+    import signal
+
+    from usp_jax.training.train import interrupts_deferred
+
+    finished = []
+    with pytest.raises(KeyboardInterrupt):
+        with interrupts_deferred():
+            os.kill(os.getpid(), signal.SIGINT)
+            for _ in range(1000):  # the handler runs between bytecodes, here at the latest
+                pass
+            finished.append(True)  # the assignment the interrupt must not cut short
+    assert finished == [True]
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
+
+
+def test_without_ctrl_c_the_deferred_block_raises_nothing():
+    from usp_jax.training.train import interrupts_deferred
+
+    with interrupts_deferred():
+        value = 1
+    assert value == 1

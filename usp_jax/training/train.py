@@ -12,6 +12,7 @@ number, so a resumed run sees exactly the randomness an uninterrupted one would.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import json
 import logging
@@ -19,6 +20,8 @@ import os
 import pathlib
 import re
 import shutil
+import signal
+import threading
 import time
 from collections.abc import Iterator
 from typing import Any
@@ -355,7 +358,8 @@ def _train_steps(
             for step in range(run.start, num_steps):
                 local = next(batches)
                 images = jax.make_array_from_process_local_data(batch_sharding, local)
-                state, metrics = step_fn(state, images)
+                with interrupts_deferred():
+                    state, metrics = step_fn(state, images)
                 done = step + 1
                 # Checking the previous step while this one runs keeps the device busy.
                 check_finite(previous_metrics, done - 1, mngr)
@@ -405,6 +409,31 @@ def _train_steps(
         if run.lock is not None:
             run.lock.release()
     return state
+
+
+@contextlib.contextmanager
+def interrupts_deferred():
+    """Ctrl-C inside the block is raised when the block ends, not inside it.
+
+    The step donates the old state's buffers to the new one: a KeyboardInterrupt between the
+    donation and the assignment would leave only deleted arrays to save. Only the main
+    thread receives Python's SIGINT, and a handler other than Python's default (a background
+    job's SIG_IGN, a user's own) is left alone.
+    """
+    if (
+        threading.current_thread() is not threading.main_thread()
+        or signal.getsignal(signal.SIGINT) is not signal.default_int_handler
+    ):
+        yield
+        return
+    received = []
+    signal.signal(signal.SIGINT, lambda *_: received.append(True))
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, signal.default_int_handler)
+    if received:
+        raise KeyboardInterrupt
 
 
 class Interrupted(KeyboardInterrupt):
