@@ -161,6 +161,19 @@ def test_a_bad_pair_folder_fails_in_one_line_naming_it(tmp_path, spec, disparity
     assert str(error.value).startswith("real pair bad:") and "\n" not in str(error.value)
 
 
+@pytest.mark.parametrize(
+    "matrix, message",
+    [(np.zeros((3, 3)), r"singular \(rank 0\)"), (np.full((3, 3), np.nan), "NaN or infinite")],
+)
+def test_a_singular_or_non_finite_true_homography_fails_naming_the_pair(tmp_path, matrix, message):
+    spec = {"truth": "homography", "homography": "H.txt"}
+    folder = _write_pair(tmp_path / "bad", _texture(30, 40), _texture(30, 40), spec)
+    np.savetxt(folder / "H.txt", matrix)
+    with pytest.raises(ValueError, match=message) as error:
+        real_pairs.read_real_pair(folder)
+    assert str(error.value).startswith("real pair bad: H.txt:")
+
+
 def test_an_unreadable_disparity_image_fails_in_one_line(tmp_path):
     spec = {"truth": "disparity", "disparity": "d.png"}
     folder = _write_pair(tmp_path / "bad", _texture(30, 40), _texture(30, 40), spec)

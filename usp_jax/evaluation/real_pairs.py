@@ -46,7 +46,7 @@ from tqdm import tqdm
 
 from usp_jax.evaluation.metrics import CORRECT_DISTANCE, project_points, top_k
 from usp_jax.evaluation.protocol import Method, detect_both
-from usp_jax.evaluation.sequences import read_image
+from usp_jax.evaluation.sequences import check_homography, read_image
 from usp_jax.inference.features import Features
 from usp_jax.inference.matching import estimate_homography, matched_points, nearest_neighbours
 
@@ -92,12 +92,12 @@ def _read_homography(path: Path, folder: Path) -> np.ndarray:
             matrix = np.loadtxt(path, dtype=np.float64)
         except ValueError:
             matrix = None
-    if matrix is None or np.shape(matrix) != (3, 3):
+    if matrix is None:
         raise _fail(folder, f"{path.name} holds no 3x3 homography")
-    matrix = np.asarray(matrix, np.float64)
-    if not np.all(np.isfinite(matrix)) or np.linalg.matrix_rank(matrix) < 3:
-        raise _fail(folder, f"{path.name}: the homography is not finite and invertible")
-    return matrix
+    try:
+        return check_homography(matrix, path.name)
+    except ValueError as err:
+        raise _fail(folder, str(err)) from None
 
 
 def _read_disparity(path: Path, scale: float, shape: tuple[int, int], folder: Path) -> np.ndarray:

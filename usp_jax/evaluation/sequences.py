@@ -71,14 +71,21 @@ def _read_homography(path: Path) -> np.ndarray:
         homography = np.loadtxt(path, dtype=np.float64)
     except ValueError as error:
         raise ValueError(f"{path}: not a plain-text 3x3 homography ({error})") from None
+    return check_homography(homography, str(path))
+
+
+def check_homography(homography: np.ndarray, name: str) -> np.ndarray:
+    """``homography`` as float64 [3, 3]; raises ValueError starting with ``name`` unless it is a
+    finite, invertible 3x3 matrix."""
+    homography = np.asarray(homography, np.float64)
     if homography.shape != (3, 3):
-        raise ValueError(f"{path}: expected a 3x3 homography, got shape {homography.shape}")
+        raise ValueError(f"{name}: expected a 3x3 homography, got shape {homography.shape}")
     if not np.all(np.isfinite(homography)):
-        raise ValueError(f"{path}: the homography holds NaN or infinite values")
+        raise ValueError(f"{name}: the homography holds NaN or infinite values")
     # Rank by SVD with numpy's default tolerance: all-zero and collapsing matrices fail alike.
     rank = np.linalg.matrix_rank(homography)
     if rank < 3:
-        raise ValueError(f"{path}: the homography is singular (rank {rank}), not invertible")
+        raise ValueError(f"{name}: the homography is singular (rank {rank}), not invertible")
     return homography
 
 
