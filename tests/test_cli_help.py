@@ -7,7 +7,7 @@ import re
 
 import pytest
 
-from usp_jax.cli_options import build_parser
+from usp_jax.cli.parser import build_parser
 from usp_jax.inference.weights import PRETRAINED
 
 

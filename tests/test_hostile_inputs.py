@@ -509,7 +509,7 @@ def test_a_really_full_tmpfs_is_one_line(tmp_path):
 
 
 def test_only_callbacks_into_a_closed_loop_are_kept_quiet():
-    from usp_jax.cli_errors import without_closed_loop_callbacks
+    from usp_jax.cli.errors import without_closed_loop_callbacks
 
     seen = []
     hook = without_closed_loop_callbacks(seen.append)

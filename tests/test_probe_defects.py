@@ -16,7 +16,7 @@ from conftest import SMALL_MODEL, TINY_RUN, one_error_line, snapshot, tiny_confi
 
 from usp_jax import inference
 from usp_jax.cli import main
-from usp_jax.cli_options import build_parser
+from usp_jax.cli.parser import build_parser
 from usp_jax.evaluation import pairs as pairs_lib
 from usp_jax.evaluation import pairs_folder, sequences
 from usp_jax.inference import matching as matching_lib

@@ -148,7 +148,7 @@ def test_a_rendered_path_reconstructs_with_its_true_relative_rotations(rendered)
 def test_the_database_holds_what_the_detector_and_matcher_produced(rendered):
     import pycolmap
 
-    from usp_jax.cli_reconstruct import WEIGHTS
+    from usp_jax.cli.reconstruct import WEIGHTS
     from usp_jax.inference.detector import MAX_SIDE, Detector
     from usp_jax.inference.images import read_image
     from usp_jax.inference.matching import mutual_nearest_neighbours

@@ -203,7 +203,7 @@ def test_the_refining_detector_is_one_compiled_function():
     ],
 )
 def test_every_detecting_command_takes_refine_and_no_refine(command):
-    from usp_jax.cli_options import parse_args
+    from usp_jax.cli import parse_args
 
     assert parse_args(command).refine is None  # the weights' own default
     assert parse_args([*command, "--no-refine"]).refine is False

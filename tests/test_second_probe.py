@@ -418,7 +418,7 @@ def test_the_docs_name_every_shipped_weights_and_every_command_that_takes_them()
     import pathlib
     import re
 
-    from usp_jax.cli_options import build_parser
+    from usp_jax.cli.parser import build_parser
     from usp_jax.inference.weights import PRETRAINED
 
     root = pathlib.Path(__file__).resolve().parents[1]

@@ -1,7 +1,9 @@
-"""The building blocks of the ``usp-jax`` options: argument types that reject a bad value in one
-line before anything runs, the options several commands share (weights, checkpoint, upsampling,
-NMS, rotation and scale), and the parser class (one-line errors, every default in the help).
-``cli_options`` and ``cli_track`` build their subcommands from them."""
+"""The options the ``usp-jax`` commands share: argument types that reject a bad value in one line
+before anything runs, the range of every numeric option, the options several commands take
+(weights, checkpoint, upsampling, NMS, rotation and scale) and what they load (``load_detector``,
+``guide``), and the parser class (one-line errors, every default in the help). Each command's
+module builds its subcommand from them.
+"""
 
 from __future__ import annotations
 
@@ -18,7 +20,60 @@ MAX_UPSAMPLE = 8
 MAX_RESOLUTION = 16384
 
 
-def _resolution(text: str) -> tuple[int, int]:
+#: The range of every numeric option, by flag: checked where it is parsed, before anything runs,
+#: and shown in its help (tests sweep every option with absurd values). Beyond them a command
+#: runs for hours (RANSAC orders, repeats), outgrows any memory (points, batch, sides) or means
+#: nothing (views, seeds). make-pairs' angles are checked by ``make_pairs`` itself, before it
+#: writes anything.
+RANGES: dict[str, tuple[float, float]] = {
+    "--steps": (1, 10**9),
+    "--num-processes": (1, 65536),
+    "--process-id": (0, 65535),
+    "--init-timeout": (1, 86400),
+    "--heartbeat-timeout": (1, 86400),
+    "--top": (1, 100_000),
+    "--ransac-orders": (1, 1000),
+    "--upsample": (1, MAX_UPSAMPLE),
+    "--views": (2, 6),  # the HPatches layout: images 1 to 6
+    "--seed": (0, 2**32 - 1),
+    "--batch": (1, 1024),
+    "--repeats": (1, 1000),
+    "--nms": (0, 100_000),  # past any image's diagonal one point survives
+    "--max-side": (0, MAX_RESOLUTION),
+    "--network-side": (0, MAX_RESOLUTION),
+    "--every": (1, 10**6),
+    "--max-frames": (1, 10**9),
+}
+
+
+def _in_range(parse, low: float, high: float):
+    """``parse`` (an argparse ``type``) that also refuses values outside [low, high]."""
+
+    def check(text: str):
+        value = parse(text)
+        if not low <= value <= high:  # NaN fails too
+            raise argparse.ArgumentTypeError(f"{text!r} is outside [{low}, {high}]")
+        return value
+
+    check.__name__ = getattr(parse, "__name__", "value")  # argparse's "invalid int value"
+    return check
+
+
+def apply_ranges(parser: argparse.ArgumentParser) -> None:
+    """Bounds every option of ``RANGES`` in every subcommand and states the range in its help."""
+    commands = [a for a in parser._actions if isinstance(a, argparse._SubParsersAction)]
+    for subparser in (p for action in commands for p in action.choices.values()):
+        for action in subparser._actions:
+            flag = next((s for s in action.option_strings if s in RANGES), None)
+            if flag is None or action.type is None:
+                continue
+            low, high = RANGES[flag]
+            action.type = _in_range(action.type, low, high)
+            if action.help and action.choices is None and f"{low} to " not in action.help:
+                action.help += f" (from {low} to {high})"
+
+
+def resolution(text: str) -> tuple[int, int]:
     try:
         height, width = (int(v) for v in text.lower().split("x"))
     except ValueError:
@@ -44,7 +99,7 @@ def _radius(text: str) -> float:
 
 
 def _upsample(text: str) -> int:
-    value = _positive(text)
+    value = positive(text)
     if value > MAX_UPSAMPLE:
         raise argparse.ArgumentTypeError(f"{text!r} is above {MAX_UPSAMPLE}")
     return value
@@ -65,11 +120,11 @@ def _integer_at_least(minimum: int, kind: str):
     return parse
 
 
-_positive = _integer_at_least(1, "positive")
-_non_negative = _integer_at_least(0, "non-negative")
+positive = _integer_at_least(1, "positive")
+non_negative = _integer_at_least(0, "non-negative")
 
 
-def _zoom_range(text: str) -> tuple[float, float]:
+def zoom_range(text: str) -> tuple[float, float]:
     """``MIN,MAX`` zoom factors for make-pairs (``evaluation.zoom.ZOOM_LIMITS``)."""
     from usp_jax.evaluation.zoom import ZOOM_LIMITS
 
@@ -84,7 +139,7 @@ def _zoom_range(text: str) -> tuple[float, float]:
     return low, high
 
 
-def _add_any_scale(parser) -> None:
+def add_any_scale(parser) -> None:
     parser.add_argument(
         "--any-scale",
         action="store_true",
@@ -93,7 +148,7 @@ def _add_any_scale(parser) -> None:
     )
 
 
-def _add_refine(parser) -> None:
+def add_refine(parser) -> None:
     """``--refine`` / ``--no-refine``: the sub-pixel refinement on or off; neither: the
     weights' own default (on for ``paper`` only)."""
     group = parser.add_mutually_exclusive_group()
@@ -115,7 +170,7 @@ def _add_refine(parser) -> None:
     )
 
 
-def _add_upsample(parser) -> None:
+def add_upsample(parser) -> None:
     # SIFT doubles its input for the same reason: the positions come back finer (RESULTS.md).
     parser.add_argument(
         "--upsample",
@@ -127,7 +182,7 @@ def _add_upsample(parser) -> None:
     )
 
 
-def _add_any_rotation(parser) -> None:
+def add_any_rotation(parser) -> None:
     parser.add_argument(
         "--any-rotation",
         action="store_true",
@@ -142,7 +197,7 @@ def _add_any_rotation(parser) -> None:
     )
 
 
-def _add_weights_name(parser, default: str = DEFAULT_PRETRAINED, why: str = "") -> None:
+def add_weights_name(parser, default: str = DEFAULT_PRETRAINED, why: str = "") -> None:
     """``--weights NAME``; ``default`` (and ``why``) only for the help: ``None`` still means
     "not given", so that ``--checkpoint`` can exclude it."""
     why = why or "the best on the held-out pairs"
@@ -154,8 +209,8 @@ def _add_weights_name(parser, default: str = DEFAULT_PRETRAINED, why: str = "") 
     )
 
 
-def _add_checkpoint(parser, **weights_default) -> None:
-    """``--checkpoint PATH`` or ``--weights NAME`` (:func:`_add_weights_name`'s options)."""
+def add_checkpoint(parser, **weights_default) -> None:
+    """``--checkpoint PATH`` or ``--weights NAME`` (:func:`add_weights_name`'s options)."""
     group = parser.add_mutually_exclusive_group()
     group.add_argument(
         "--checkpoint",
@@ -163,15 +218,15 @@ def _add_checkpoint(parser, **weights_default) -> None:
         help="training workdir, one of its checkpoints, or a .npz weights file"
         " from `usp-jax export --save-weights` (default: the shipped weights)",
     )
-    _add_weights_name(group, **weights_default)
+    add_weights_name(group, **weights_default)
 
 
-def _add_nms_radius(parser, default: float, help: str) -> None:
+def add_nms_radius(parser, default: float, help: str) -> None:
     """``--nms``: the detector's NMS radius in px, any finite value >= 0 (detect, match, export)."""
     parser.add_argument("--nms", type=_radius, default=default, help=help)
 
 
-def _add_max_side(parser, help: str, flag: str = "--max-side", default: int | None = MAX_SIDE):
+def add_max_side(parser, help: str, flag: str = "--max-side", default: int | None = MAX_SIDE):
     """``--max-side``: the longest side the network sees (``Detector``'s max_side; detect, match,
     track; track's ``--network-side`` too): 0 or at least one 8 px cell."""
     parser.add_argument(flag, type=_side, default=default, metavar="PX", help=help)
@@ -179,12 +234,44 @@ def _add_max_side(parser, help: str, flag: str = "--max-side", default: int | No
 
 def _side(text: str) -> int:
     """A longest side in px: 0 (native size) or ``CELL`` px and more (``--max-side``)."""
-    value = _non_negative(text)
+    value = non_negative(text)
     if 0 < value < CELL:
         raise argparse.ArgumentTypeError(
             f"{text!r} is under {CELL} px, one cell; give 0 (native size) or {CELL} or more"
         )
     return value
+
+
+def load_detector(args, **options):
+    """The detector the weight options name (``--weights``, ``--checkpoint``, else the shipped
+    default), with the options ``--upsample``, ``--any-scale`` and ``--refine`` where the command
+    has them; ``options`` override."""
+    from usp_jax.inference.detector import Detector
+
+    options.setdefault("upsample", getattr(args, "upsample", 1))
+    options.setdefault("any_scale", getattr(args, "any_scale", False))
+    options.setdefault("refine", getattr(args, "refine", None))
+    if getattr(args, "weights", None):
+        return Detector.pretrained(args.weights, **options)
+    return Detector.load(getattr(args, "checkpoint", None) or None, **options)
+
+
+def guide(args, checked_only: bool = False, **options):
+    """The rotation-invariant guide of ``--any-rotation`` (None without it, or with
+    ``checked_only``: the options are only checked), ``--guide``: shipped weights by name, else a
+    weights file or training workdir."""
+    from usp_jax.inference.detector import Detector
+    from usp_jax.inference.weights import PRETRAINED
+
+    if args.guide is not None and not args.any_rotation:
+        # Silently ignoring it would hide a forgotten flag.
+        raise ValueError("--guide is only used with --any-rotation")
+    if checked_only or not args.any_rotation:
+        return None
+    guide = args.guide or "rotation"
+    if guide in PRETRAINED:
+        return Detector.pretrained(guide, **options)
+    return Detector.load(guide, **options)
 
 
 class _HelpFormatter(argparse.HelpFormatter):
@@ -205,7 +292,7 @@ class _HelpFormatter(argparse.HelpFormatter):
         return text
 
 
-class _Parser(argparse.ArgumentParser):
+class Parser(argparse.ArgumentParser):
     """argparse with its errors in one line (the usage is one ``-h`` away), exit status 2, and
     every option's default in its help (:class:`_HelpFormatter`, subcommands' parsers too)."""
 

@@ -39,7 +39,7 @@ def plain_warnings(command: str, show):
     """``warnings.showwarning`` (``show``) that prints usp-jax's own warnings (a skipped photo)
     as one plain line each, ``usp-jax COMMAND: warning: ...``, without Python's file, line and
     category; other libraries' warnings keep ``show``'s form."""
-    package = pathlib.Path(__file__).parent  # usp_jax
+    package = pathlib.Path(__file__).parent.parent  # usp_jax
 
     def plain(message, category, filename, lineno, file=None, line=None) -> None:
         if not pathlib.Path(filename).absolute().is_relative_to(package):

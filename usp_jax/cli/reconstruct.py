@@ -27,6 +27,7 @@ import sys
 import time
 
 from usp_jax import sfm
+from usp_jax.cli import arguments
 from usp_jax.inference.images import IMAGE_SUFFIXES, read_image
 
 log = logging.getLogger(__name__)
@@ -42,28 +43,26 @@ OUTPUTS = frozenset(
 
 
 def add_parser(subparsers) -> None:
-    """The ``reconstruct`` subcommand's options (``cli_options.build_parser`` calls this)."""
-    from usp_jax import cli_arguments as options
-
+    """The ``reconstruct`` subcommand's options (``cli.parser`` calls this)."""
     p = subparsers.add_parser(
         "reconstruct", help="structure from motion: cameras and 3-D points with COLMAP"
     )
     p.add_argument("images", help="a folder of photos (one size) or a video file")
     p.add_argument("--out", required=True, help="new folder for the database, models, summary")
-    options._add_checkpoint(p, default=WEIGHTS, why="the fast network taught by paper")
+    arguments.add_checkpoint(p, default=WEIGHTS, why="the fast network taught by paper")
     p.add_argument(
-        "--top", type=options._positive, default=TOP, help=f"points per image (default {TOP})"
+        "--top", type=arguments.positive, default=TOP, help=f"points per image (default {TOP})"
     )
-    options._add_max_side(p, "the network sees images shrunk to this longest side (0: never)")
+    arguments.add_max_side(p, "the network sees images shrunk to this longest side (0: never)")
     p.add_argument(
         "--window",
-        type=options._positive,
+        type=arguments.positive,
         default=sfm.WINDOW,
         metavar="N",
         help="a video frame is matched to the N frames after it",
     )
     p.add_argument(
-        "--every", type=options._positive, default=1, metavar="N", help="every N-th video frame"
+        "--every", type=arguments.positive, default=1, metavar="N", help="every N-th video frame"
     )
     p.add_argument(
         "--export-features",
@@ -71,8 +70,8 @@ def add_parser(subparsers) -> None:
         help="also write DIR/features.npz: keypoints, scores, descriptors, raw matches",
     )
     p.add_argument("--no-progress", action="store_true", help="no progress bars")
-    options._add_upsample(p)
-    options._add_any_scale(p)
+    arguments.add_upsample(p)
+    arguments.add_any_scale(p)
 
 
 def check_out(out: pathlib.Path) -> None:
@@ -138,10 +137,10 @@ def _detect(detector, named_images, bar) -> tuple[list[str], list, tuple[int, in
     return names, features, sfm.check_sizes(names, [size] * len(names))
 
 
-def _detector(args, load_detector):
+def _detector(args):
     if not (getattr(args, "weights", None) or getattr(args, "checkpoint", None)):
         args.weights = WEIGHTS
-    return load_detector(args, top_n=args.top, max_side=args.max_side, refine=True)
+    return arguments.load_detector(args, top_n=args.top, max_side=args.max_side, refine=True)
 
 
 def _stages(args, detector, work: pathlib.Path, source: pathlib.Path, summary: dict) -> list:
@@ -201,7 +200,7 @@ def _finish(work: pathlib.Path, out: pathlib.Path, models: list, summary: dict) 
     os.replace(work, out)
 
 
-def run(args, load_detector) -> int:
+def run(args) -> int:
     """The command: checks, stages, outputs and the one-line result."""
     source = pathlib.Path(args.images).expanduser()
     out = pathlib.Path(args.out).expanduser().absolute()
@@ -211,7 +210,7 @@ def run(args, load_detector) -> int:
     check_out(out)
     if not args.verbose:
         pycolmap.logging.minloglevel = 3  # its failures come back as our one line
-    detector = _detector(args, load_detector)
+    detector = _detector(args)
     summary = {"command": "reconstruct", "source": str(args.images), "seconds": {}, "skipped": []}
     summary["detector"] = {"weights": args.weights or args.checkpoint, "top": args.top}
     out.parent.mkdir(parents=True, exist_ok=True)

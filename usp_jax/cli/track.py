@@ -33,6 +33,7 @@ import sys
 
 import numpy as np
 
+from usp_jax.cli import arguments, outputs
 from usp_jax.inference import tracking, video
 from usp_jax.inference.detector import MAX_SIDE
 from usp_jax.inference.tracking import VIDEO_SIDE, VIDEO_WEIGHTS
@@ -42,13 +43,10 @@ METHODS = ("usp", "orb", "akaze", "sift", "xfeat")
 
 
 def add_parser(subparsers) -> None:
-    """The ``track`` subcommand's options, from ``cli_arguments``' building blocks
-    (``cli_options.build_parser`` calls this)."""
-    from usp_jax import cli_arguments as options
-
+    """The ``track`` subcommand's options (``cli.parser`` calls this)."""
     p = subparsers.add_parser("track", help="keypoint tracks through a video, folder or camera")
     p.add_argument("source", help="a video file, a folder of frames (name order) or a camera index")
-    options._add_checkpoint(
+    arguments.add_checkpoint(
         p, default=VIDEO_WEIGHTS, why="the fast network taught by paper: real time on a CPU"
     )
     p.add_argument(
@@ -59,14 +57,14 @@ def add_parser(subparsers) -> None:
         " package is installed) through the same tracker, for comparison",
     )
     p.add_argument(
-        "--top", type=options._positive, default=1000, help="points per frame (default 1000)"
+        "--top", type=arguments.positive, default=1000, help="points per frame (default 1000)"
     )
-    options._add_nms_radius(p, 4.0, "the network's NMS radius in px (default 4: spread points)")
-    options._add_max_side(
+    arguments.add_nms_radius(p, 4.0, "the network's NMS radius in px (default 4: spread points)")
+    arguments.add_max_side(
         p,
         f"shrink frames longer than this first, every method alike (default {MAX_SIDE}; 0: never)",
     )
-    options._add_max_side(
+    arguments.add_max_side(
         p,
         f"the network detects on a copy of each frame at most this long, its points mapped"
         f" back to the frame's pixels (default {VIDEO_SIDE}; 0: the frame itself)",
@@ -74,11 +72,11 @@ def add_parser(subparsers) -> None:
         default=None,
     )
     p.add_argument(
-        "--every", type=options._positive, default=1, metavar="N", help="track every N-th frame"
+        "--every", type=arguments.positive, default=1, metavar="N", help="track every N-th frame"
     )
     p.add_argument(
         "--max-frames",
-        type=options._positive,
+        type=arguments.positive,
         metavar="N",
         help="stop after N tracked frames (Ctrl-C also ends a run, keeping its outputs)",
     )
@@ -101,11 +99,11 @@ def add_parser(subparsers) -> None:
         "--out", help="annotated video (.avi: MJPG, .mp4: mp4v) or, ending in .png, a frame strip"
     )
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
-    options._add_upsample(p)
-    options._add_any_scale(p)
+    arguments.add_upsample(p)
+    arguments.add_any_scale(p)
 
 
-def _method(args, load_detector):
+def _method(args):
     """The detector ``--method`` names, with ``--top`` points per frame."""
     if args.method != "usp":
         used = [f"--{n}" for n in ("weights", "checkpoint") if getattr(args, n, None)]
@@ -129,24 +127,7 @@ def _method(args, load_detector):
         args = argparse.Namespace(**{**vars(args), "weights": VIDEO_WEIGHTS})
     if getattr(args, "any_scale", False):
         options["any_scale"] = True
-    return load_detector(args, **options)
-
-
-def _write_text(path: str, text: str) -> None:
-    """``text`` into ``path`` through a temporary name beside it, so it is never half-written."""
-    _write(path, lambda partial: partial.write_text(text))
-
-
-def _write(path: str | pathlib.Path, write) -> None:
-    """``write(partial path)``, then the partial file renamed to ``path``; nothing is left at
-    either name when ``write`` fails."""
-    target = pathlib.Path(path).expanduser()
-    partial = video.partial_path(target)
-    try:
-        write(partial)
-        os.replace(partial, target)
-    finally:
-        partial.unlink(missing_ok=True)
+    return arguments.load_detector(args, **options)
 
 
 def features_path(json_path: str) -> pathlib.Path:
@@ -165,7 +146,7 @@ def _save_features(path: pathlib.Path, results: list[tracking.TrackedFrame]) -> 
         with open(partial, "wb") as file:
             tracking.save_features(file, results)
 
-    _write(path, write)
+    outputs.write_atomic(path, write)
 
 
 def _record(result: tracking.TrackedFrame) -> dict:
@@ -241,16 +222,18 @@ def _warn_if_static(numbers: dict, planar: bool) -> None:
         )
 
 
-def run(args, load_detector) -> int:
-    """The command (``cli.cmd_track`` has checked that the output paths can be written)."""
+def run(args) -> int:
+    """The command: every output checked, the frames tracked, the outputs written at the end."""
     from tqdm import tqdm
 
+    for path, what in ((args.out, "--out"), (args.json, "--json"), (args.tracks, "--tracks")):
+        outputs.check_output_file(path, what)
     # libav's complaints about a stream it decodes anyway (AV_LOG_QUIET), unless the user asks.
     os.environ.setdefault("OPENCV_FFMPEG_LOGLEVEL", "-8")
     if args.out:
         video.check_output(args.out)
     features = features_path(args.json) if args.json else None
-    method = _method(args, load_detector)
+    method = _method(args)
     source = video.open_source(args.source, args.max_side)
     config = tracking.TrackingConfig(planar=args.planar, every=args.every)
     current = {}
@@ -309,9 +292,9 @@ def run(args, load_detector) -> int:
             "frames": [_record(r) for r in results],
         }
         _save_features(features, results)
-        _write_text(args.json, json.dumps({**document, "features": features.name}))
+        outputs.write_text(args.json, json.dumps({**document, "features": features.name}))
         print(f"wrote {args.json}\nwrote {features}")
     if args.tracks:
-        _write_text(args.tracks, _tracks_csv(results))
+        outputs.write_text(args.tracks, _tracks_csv(results))
         print(f"wrote {args.tracks}")
     return 0
