@@ -351,7 +351,12 @@ def test_train_names_the_earlier_step_of_a_damaged_checkpoint(tmp_path, capsys):
 
 
 @pytest.mark.slow
-def test_ctrl_c_in_train_saves_a_checkpoint_and_names_the_step_it_resumes_from(tmp_path):
+@pytest.mark.parametrize(
+    "signame, code, said", [("SIGINT", 130, "interrupted"), ("SIGTERM", 143, "stopped by SIGTERM")]
+)
+def test_ctrl_c_or_sigterm_in_train_saves_a_checkpoint_and_names_the_step_it_resumes_from(
+    tmp_path, signame, code, said
+):
     import signal
     import subprocess
     import time
@@ -372,11 +377,11 @@ def test_ctrl_c_in_train_saves_a_checkpoint_and_names_the_step_it_resumes_from(t
     deadline = time.time() + 600
     while time.time() < deadline and len(metrics_lib.read_metrics(workdir)) < 3:
         time.sleep(0.5)
-    process.send_signal(signal.SIGINT)
+    process.send_signal(getattr(signal, signame))
     err = process.communicate(timeout=300)[1]
-    assert process.returncode == 130, err
+    assert process.returncode == code, err
     (line,) = [line for line in err.splitlines() if line.startswith("usp-jax train:")]
-    step = int(line.split("interrupted at step ")[1].split(";")[0])
+    step = int(line.split(f"{said} at step ")[1].split(";")[0])
     assert step >= 3 and (workdir / "checkpoints" / str(step)).is_dir()
     assert f"resume from step {step}" in line
 

@@ -418,3 +418,20 @@ def test_without_ctrl_c_the_deferred_block_raises_nothing():
     with interrupts_deferred():
         value = 1
     assert value == 1
+
+
+def test_sigterm_inside_a_step_is_raised_after_it_as_terminated():
+    import os
+    import signal
+
+    from usp_jax.training.train import Terminated, interrupts_deferred, sigterm_saves
+
+    finished, before = [], signal.getsignal(signal.SIGTERM)
+    with pytest.raises(Terminated), sigterm_saves():
+        with interrupts_deferred():
+            os.kill(os.getpid(), signal.SIGTERM)
+            for _ in range(1000):
+                pass
+            finished.append(True)
+    assert finished == [True]
+    assert signal.getsignal(signal.SIGTERM) is before

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import errno
 import pathlib
+import signal
 import sys
 
 _USER_ERRORS = (FileNotFoundError, ValueError, NotADirectoryError, IsADirectoryError)
@@ -75,7 +76,7 @@ def classify(err: BaseException) -> tuple[int, str | None]:
     from usp_jax.training.workdir import WorkdirError
 
     if isinstance(err, KeyboardInterrupt):  # train's says which step it resumes from
-        return 130, str(err) or "interrupted"
+        return 128 + getattr(err, "signum", signal.SIGINT), str(err) or "interrupted"
     user = isinstance(err, (*_USER_ERRORS, TrainingDiverged, WorkdirError, DistributedError))
     if user or (isinstance(err, OSError) and err.errno in _USER_ERRNOS):
         named = isinstance(err, OSError) and err.filename and err.strerror
@@ -84,7 +85,7 @@ def classify(err: BaseException) -> tuple[int, str | None]:
 
 
 def show(command: str, code: int, message: str) -> None:
-    if code == 130:
+    if code in (128 + signal.SIGINT, 128 + signal.SIGTERM):
         print(f"usp-jax {command}: {message}", file=sys.stderr)
     else:
         user_error(command, message)

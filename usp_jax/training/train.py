@@ -166,7 +166,8 @@ def fit(
     )
     run = _open_run(config, workdir, initial, allow_config_change)
     step_fn = jit_train_step(config, run.mesh, teacher)
-    return _train_steps(config, run, step_fn, dataset, num_steps, progress)
+    with sigterm_saves():
+        return _train_steps(config, run, step_fn, dataset, num_steps, progress)
 
 
 def _check_num_steps(num_steps) -> None:
@@ -384,10 +385,11 @@ def _train_steps(
             finished = True
         except TrainingDiverged:
             raise
-        except KeyboardInterrupt:
+        except KeyboardInterrupt as stop:
             if not single:  # the others would wait for this one's part of the save
                 raise
-            raise _save_interrupted(config, run, state, previous_metrics) from None
+            signum = getattr(stop, "signum", signal.SIGINT)
+            raise _save_interrupted(config, run, state, previous_metrics, signum) from None
         except Exception as error:
             cause = _os_error_in(error)
             if cause is None:
@@ -411,39 +413,79 @@ def _train_steps(
     return state
 
 
-@contextlib.contextmanager
-def interrupts_deferred():
-    """Ctrl-C inside the block is raised when the block ends, not inside it.
+class Terminated(KeyboardInterrupt):
+    """SIGTERM in a single-process run (a scheduler ending or preempting the job), raised where
+    Ctrl-C would be, so that the run saves its step as it does on Ctrl-C."""
 
-    The step donates the old state's buffers to the new one: a KeyboardInterrupt between the
-    donation and the assignment would leave only deleted arrays to save. Only the main
-    thread receives Python's SIGINT, and a handler other than Python's default (a background
-    job's SIG_IGN, a user's own) is left alone.
-    """
-    if (
-        threading.current_thread() is not threading.main_thread()
-        or signal.getsignal(signal.SIGINT) is not signal.default_int_handler
-    ):
+    signum = signal.SIGTERM
+
+
+def _raise_terminated(signum, frame) -> None:
+    raise Terminated
+
+
+@contextlib.contextmanager
+def sigterm_saves():
+    """SIGTERM raises :class:`Terminated` inside the block (a single process's main thread only;
+    in a multi-process run JAX's runtime takes SIGTERM and the processes stop together,
+    ``distributed.preempted``)."""
+    if threading.current_thread() is not threading.main_thread() or jax.process_count() > 1:
         yield
         return
-    received = []
-    signal.signal(signal.SIGINT, lambda *_: received.append(True))
+    previous = signal.signal(signal.SIGTERM, _raise_terminated)
     try:
         yield
     finally:
-        signal.signal(signal.SIGINT, signal.default_int_handler)
+        signal.signal(signal.SIGTERM, previous)
+
+
+@contextlib.contextmanager
+def interrupts_deferred():
+    """Ctrl-C (and SIGTERM under :func:`sigterm_saves`) inside the block is raised when the
+    block ends, not inside it.
+
+    The step donates the old state's buffers to the new one: an interrupt between the donation
+    and the assignment would leave only deleted arrays to save. Only the main thread receives
+    Python's signals; a handler other than ours or Python's default (a background job's
+    SIG_IGN, a user's own) is left alone.
+    """
+    ours = {signal.SIGINT: signal.default_int_handler, signal.SIGTERM: _raise_terminated}
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    deferred = [s for s, handler in ours.items() if signal.getsignal(s) is handler]
+    received = []
+    for signum in deferred:
+        signal.signal(signum, lambda signum, _: received.append(signum))
+    try:
+        yield
+    finally:
+        for signum in deferred:
+            signal.signal(signum, ours[signum])
+    if signal.SIGTERM in received:
+        raise Terminated
     if received:
         raise KeyboardInterrupt
 
 
 class Interrupted(KeyboardInterrupt):
-    """Training stopped by Ctrl-C (SIGINT); the message says from which step a rerun resumes."""
+    """Training stopped by Ctrl-C (``signum`` SIGINT) or, in a single-process run, SIGTERM; the
+    message says from which step a rerun resumes."""
+
+    def __init__(self, message: str, signum: int = signal.SIGINT):
+        super().__init__(message)
+        self.signum = signum
 
 
-def _save_interrupted(config, run: _Run, state: TrainState, metrics) -> Interrupted:
-    """Saves ``state`` on Ctrl-C, as a checkpoint would have, unless it is saved already or
-    its loss was not finite; returns the error that says which step a rerun resumes from."""
+def _save_interrupted(
+    config, run: _Run, state: TrainState, metrics, signum: int = signal.SIGINT
+) -> Interrupted:
+    """Saves ``state`` on Ctrl-C or SIGTERM, as a checkpoint would have, unless it is saved
+    already or its loss was not finite; returns the error that says which step a rerun resumes
+    from."""
     from usp_jax.training import checkpoint
+
+    how = "interrupted" if signum == signal.SIGINT else f"stopped by {signal.Signals(signum).name}"
 
     step, latest = int(state.step), run.mngr.latest_step()
     saved = f"; checkpoint step {step} saved in {run.workdir / 'checkpoints'}"
@@ -453,11 +495,11 @@ def _save_interrupted(config, run: _Run, state: TrainState, metrics) -> Interrup
         checkpoint.save(run.mngr, step, state, config)
         run.mngr.wait_until_finished()
     elif latest is None:
-        return Interrupted("interrupted before the first step; nothing to resume")
+        return Interrupted(f"{how} before the first step; nothing to resume", signum)
     else:
         saved = f"; its checkpoint is in {run.workdir / 'checkpoints'}"
     return Interrupted(
-        f"interrupted at step {step}{saved}; rerun the same command to resume from step {step}"
+        f"{how} at step {step}{saved}; rerun the same command to resume from step {step}", signum
     )
 
 
