@@ -64,6 +64,33 @@ def test_descriptor_loss_matches_numpy_loop():
     assert float(got) == pytest.approx(expected, rel=1e-5)
 
 
+def test_hardest_negative_loss_matches_numpy_loop():
+    rng = np.random.default_rng(4)
+    fa, fb = (rng.normal(size=(n, 4)).astype(np.float32) for n in (5, 6))
+    fa /= np.linalg.norm(fa, axis=1, keepdims=True)
+    fb /= np.linalg.norm(fb, axis=1, keepdims=True)
+    c = (rng.uniform(size=(5, 6)) < 0.3).astype(np.float32)
+    mask = (rng.uniform(size=(5, 6)) < 0.8).astype(np.float32)
+    sim, total, count = fa @ fb.T, 0.0, 0
+    for s, cc, m in ((sim, c, mask), (sim.T, c.T, mask.T)):
+        for i in range(s.shape[0]):
+            pos = [s[i, j] for j in range(s.shape[1]) if m[i, j] and cc[i, j]]
+            neg = [s[i, k] for k in range(s.shape[1]) if m[i, k] and not cc[i, k]]
+            if pos and neg:
+                total += max(0.0, 0.5 + max(neg) - max(pos))
+                count += 1
+    assert count > 0
+    got = losses.hardest_negative_loss(*map(jnp.asarray, (fa, fb, c, mask)), margin=0.5)
+    assert float(got) == pytest.approx(total / count, rel=1e-5)
+
+
+def test_hardest_negative_loss_is_zero_once_every_true_match_beats_its_hardest_negative_by_the_margin():
+    eye = jnp.eye(4)  # point i of A matches point i of B; distinct points are orthogonal
+    c, mask = jnp.eye(4), jnp.ones((4, 4))
+    assert float(losses.hardest_negative_loss(eye, eye, c, mask, margin=0.5)) == 0.0
+    assert float(losses.hardest_negative_loss(eye, eye, c, mask, margin=1.5)) == pytest.approx(0.5)
+
+
 @pytest.mark.parametrize("mode", ["squared", "signed"])
 def test_decorrelation_loss_matches_numpy_corrcoef(mode):
     f = np.random.default_rng(2).normal(size=(50, 6)).astype(np.float32)

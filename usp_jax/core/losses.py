@@ -42,6 +42,10 @@ class LossConfig:
     margin_negative: float = 0.2
     eps_correspond: float = 4.0
     eps_descriptor: float = 8.0
+    # Not in the paper: a triplet hinge on each point's hardest negative (hardest_negative_loss).
+    # Off by default; experiments/real_pairs_hard.py turns it on.
+    alpha_hard: float = 0.0
+    margin_hard: float = 0.5
     # "squared" (default) decorrelates; "signed" is eq. 14 as printed, which anti-correlated
     # dimensions minimise without decorrelating (see decorrelation_loss).
     decorrelation: str = "squared"
@@ -119,6 +123,40 @@ def descriptor_loss(
     positive = lambda_d * c * jnp.maximum(0.0, margin_positive - sim)
     negative = (1.0 - c) * jnp.maximum(0.0, sim - margin_negative)
     return jnp.sum(mask * (positive + negative))
+
+
+def hardest_negative_loss(
+    desc_a: jax.Array,
+    desc_b: jax.Array,
+    c: jax.Array,
+    mask: jax.Array,
+    margin: float = LossConfig.margin_hard,
+) -> jax.Array:
+    """Triplet hinge on each point's hardest negative, from A to B and from B to A (not in the
+    paper; HardNet's sampling): max(0, margin + max_k s_ik - max_j s_ij) over the positives j
+    (c_ij = 1) and the negatives k (c_ik = 0) of point i, averaged over the points that have
+    both.
+
+    Eq. 13's negative hinge averages over all M^2 pairs, almost all of them far apart and
+    already dissimilar; what makes a nearest neighbour wrong on a real pair is the one most
+    similar non-corresponding point, which this term pushes below the true match.
+
+    desc_a: [MA, F], desc_b: [MB, F] (unit rows); c: [MA, MB] correspondence matrix (eq. 11);
+    mask: [MA, MB] which pairs count.
+    """
+    sim = desc_a @ desc_b.T
+    positive, negative = c * mask > 0, (1.0 - c) * mask > 0
+
+    def one_way(sim, positive, negative):
+        best = jnp.max(jnp.where(positive, sim, -2.0), axis=1)  # sims lie in [-1, 1]
+        hardest = jnp.max(jnp.where(negative, sim, -2.0), axis=1)
+        counted = jnp.any(positive, axis=1) & jnp.any(negative, axis=1)
+        hinge = jnp.maximum(0.0, margin + hardest - best)
+        return jnp.sum(jnp.where(counted, hinge, 0.0)), jnp.sum(counted)
+
+    loss_a, count_a = one_way(sim, positive, negative)
+    loss_b, count_b = one_way(sim.T, positive.T, negative.T)
+    return (loss_a + loss_b) / jnp.maximum(count_a + count_b, 1)
 
 
 def decorrelation_loss(descriptors: jax.Array, mode: str = "squared") -> jax.Array:
@@ -212,6 +250,11 @@ def pair_loss(
     decorr = decorrelation_loss(pred_a.descriptors, config.decorrelation) + decorrelation_loss(
         pred_b.descriptors, config.decorrelation
     )
+    hard = (
+        hardest_negative_loss(pred_a.descriptors, pred_b.descriptors, c, mask, config.margin_hard)
+        if config.alpha_hard
+        else jnp.zeros(())
+    )
     terms = {
         "usp": config.alpha_usp * usp,
         "uni_xy": config.alpha_uni_xy * uni,
@@ -219,6 +262,7 @@ def pair_loss(
         "uni_score": config.alpha_uni_score * uni_score,
         "desc": config.alpha_desc * desc,
         "decorr": config.alpha_decorr * decorr,
+        "hard": config.alpha_hard * hard,
     }
     total = sum(terms.values())
     metrics = {

@@ -54,6 +54,8 @@ RANGES = {
             "alpha_uni_score",
             "alpha_desc",
             "alpha_decorr",
+            "alpha_hard",
+            "margin_hard",
         )
     },
 }
