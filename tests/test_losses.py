@@ -80,15 +80,17 @@ def test_hardest_negative_loss_matches_numpy_loop():
                 total += max(0.0, 0.5 + max(neg) - max(pos))
                 count += 1
     assert count > 0
-    got = losses.hardest_negative_loss(*map(jnp.asarray, (fa, fb, c, mask)), margin=0.5)
+    positive, negative = (c * mask) > 0, ((1 - c) * mask) > 0
+    got = losses.hardest_negative_loss(*map(jnp.asarray, (fa, fb, positive, negative)), margin=0.5)
     assert float(got) == pytest.approx(total / count, rel=1e-5)
 
 
 def test_hardest_negative_loss_is_zero_once_every_true_match_beats_its_hardest_negative_by_the_margin():
     eye = jnp.eye(4)  # point i of A matches point i of B; distinct points are orthogonal
-    c, mask = jnp.eye(4), jnp.ones((4, 4))
-    assert float(losses.hardest_negative_loss(eye, eye, c, mask, margin=0.5)) == 0.0
-    assert float(losses.hardest_negative_loss(eye, eye, c, mask, margin=1.5)) == pytest.approx(0.5)
+    positive, negative = eye > 0, eye == 0
+    assert float(losses.hardest_negative_loss(eye, eye, positive, negative, margin=0.5)) == 0.0
+    hinge = losses.hardest_negative_loss(eye, eye, positive, negative, margin=1.5)
+    assert float(hinge) == pytest.approx(0.5)
 
 
 @pytest.mark.parametrize("mode", ["squared", "signed"])
@@ -225,6 +227,26 @@ def test_similarity_metrics_are_the_mean_over_positive_and_negative_pairs():
     collapsed = pred._replace(descriptors=one_vector)
     _, metrics = pair_loss(collapsed, collapsed, jnp.eye(3), 32, 48)
     assert float(metrics["desc/sim_negative"]) == pytest.approx(1.0, 1e-5)
+
+
+def test_the_hardest_negative_term_seeks_negatives_beyond_the_safe_radius_only():
+    images = jax.random.uniform(jax.random.PRNGKey(5), (1, 32, 48, 3))
+    pred, _ = predict(SMALL_MODEL, images)
+    pred = jax.tree.map(lambda x: x[0], pred)
+    corr = losses.branch_correspondences(pred, pred, jnp.eye(3), 32, 48)
+    c = np.asarray(correspondence.correspondence_matrix(corr, 8.0)) > 0
+    visible = np.asarray(corr.valid_a)[:, None] & np.asarray(corr.valid_b)[None, :]
+    distances = np.asarray(corr.distances)
+    for radius in (1.0, 16.0):  # 1 px: every other point; a point's own distance is ~0
+        config = losses.LossConfig(alpha_hard=1.0, hard_safe_radius=radius)
+        _, metrics = jax.jit(losses.pair_loss, static_argnums=(3, 4, 5))(
+            pred, pred, jnp.eye(3), 32, 48, config
+        )
+        expected = losses.hardest_negative_loss(
+            pred.descriptors, pred.descriptors, c & visible, (distances > radius) & ~c & visible
+        )
+        assert float(metrics["loss/hard"]) == pytest.approx(float(expected), rel=1e-5)
+    assert np.any((distances > 1) & (distances <= 16) & ~c)  # the radius does exclude some
 
 
 def test_cpu_photos_descriptor_weights_keep_the_papers_balance_at_128x160():

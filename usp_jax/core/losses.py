@@ -46,6 +46,7 @@ class LossConfig:
     # Off by default; experiments/real_pairs_hard.py turns it on.
     alpha_hard: float = 0.0
     margin_hard: float = 0.5
+    hard_safe_radius: float = 16.0  # px: the hardest negative is sought beyond it
     # "squared" (default) decorrelates; "signed" is eq. 14 as printed, which anti-correlated
     # dimensions minimise without decorrelating (see decorrelation_loss).
     decorrelation: str = "squared"
@@ -128,24 +129,25 @@ def descriptor_loss(
 def hardest_negative_loss(
     desc_a: jax.Array,
     desc_b: jax.Array,
-    c: jax.Array,
-    mask: jax.Array,
+    positive: jax.Array,
+    negative: jax.Array,
     margin: float = LossConfig.margin_hard,
 ) -> jax.Array:
     """Triplet hinge on each point's hardest negative, from A to B and from B to A (not in the
-    paper; HardNet's sampling): max(0, margin + max_k s_ik - max_j s_ij) over the positives j
-    (c_ij = 1) and the negatives k (c_ik = 0) of point i, averaged over the points that have
-    both.
+    paper; HardNet's sampling with D2-Net's safe radius): max(0, margin + max_k s_ik - max_j
+    s_ij) over the positives j and the negatives k of point i, averaged over the points that
+    have both.
 
     Eq. 13's negative hinge averages over all M^2 pairs, almost all of them far apart and
     already dissimilar; what makes a nearest neighbour wrong on a real pair is the one most
-    similar non-corresponding point, which this term pushes below the true match.
+    similar non-corresponding point, which this term pushes below the true match. The
+    negatives should lie beyond a safe radius (``LossConfig.hard_safe_radius``): descriptors
+    are sampled from a map at 1/8 of the resolution, so points in neighbouring cells share
+    their features and cannot be told apart.
 
-    desc_a: [MA, F], desc_b: [MB, F] (unit rows); c: [MA, MB] correspondence matrix (eq. 11);
-    mask: [MA, MB] which pairs count.
+    desc_a: [MA, F], desc_b: [MB, F] (unit rows); positive, negative: [MA, MB] bool.
     """
     sim = desc_a @ desc_b.T
-    positive, negative = c * mask > 0, (1.0 - c) * mask > 0
 
     def one_way(sim, positive, negative):
         best = jnp.max(jnp.where(positive, sim, -2.0), axis=1)  # sims lie in [-1, 1]
@@ -250,11 +252,16 @@ def pair_loss(
     decorr = decorrelation_loss(pred_a.descriptors, config.decorrelation) + decorrelation_loss(
         pred_b.descriptors, config.decorrelation
     )
-    hard = (
-        hardest_negative_loss(pred_a.descriptors, pred_b.descriptors, c, mask, config.margin_hard)
-        if config.alpha_hard
-        else jnp.zeros(())
-    )
+    hard = jnp.zeros(())
+    if config.alpha_hard:  # negatives only beyond the safe radius (hardest_negative_loss)
+        far = jax.lax.stop_gradient(corr.distances) > config.hard_safe_radius
+        hard = hardest_negative_loss(
+            pred_a.descriptors,
+            pred_b.descriptors,
+            c * mask > 0,
+            far & (c == 0) & (mask > 0),
+            config.margin_hard,
+        )
     terms = {
         "usp": config.alpha_usp * usp,
         "uni_xy": config.alpha_uni_xy * uni,

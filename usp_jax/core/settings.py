@@ -38,6 +38,7 @@ RANGES = {
     "loss.lambda_d": _NON_NEGATIVE,
     "loss.eps_correspond": (1e-9, None),
     "loss.eps_descriptor": (1e-9, None),
+    "loss.hard_safe_radius": _NON_NEGATIVE,
     "distill.temperature": (1e-3, None),
     **{
         f"distill.{name}": _NON_NEGATIVE
