@@ -399,7 +399,7 @@ def test_ctrl_c_inside_a_step_is_raised_after_the_step_has_returned_its_state():
     import os
     import signal
 
-    from usp_jax.training.train import interrupts_deferred
+    from usp_jax.training.interrupts import interrupts_deferred
 
     finished = []
     with pytest.raises(KeyboardInterrupt):
@@ -413,7 +413,7 @@ def test_ctrl_c_inside_a_step_is_raised_after_the_step_has_returned_its_state():
 
 
 def test_without_ctrl_c_the_deferred_block_raises_nothing():
-    from usp_jax.training.train import interrupts_deferred
+    from usp_jax.training.interrupts import interrupts_deferred
 
     with interrupts_deferred():
         value = 1
@@ -424,7 +424,7 @@ def test_sigterm_inside_a_step_is_raised_after_it_as_terminated():
     import os
     import signal
 
-    from usp_jax.training.train import Terminated, interrupts_deferred, sigterm_saves
+    from usp_jax.training.interrupts import Terminated, interrupts_deferred, sigterm_saves
 
     finished, before = [], signal.getsignal(signal.SIGTERM)
     with pytest.raises(Terminated), sigterm_saves():

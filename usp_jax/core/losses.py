@@ -242,26 +242,14 @@ def pair_loss(
         config.margin_positive,
         config.margin_negative,
     )
-    # Mean similarity of positive and negative pairs: both near 1 means the descriptors have
-    # collapsed to one vector (the hinge's positive term, weighted lambda_d, outweighs the
-    # negatives when few cells compete; see experiments/paper_network.py).
-    sim = pred_a.descriptors @ pred_b.descriptors.T
-    positive_mask, negative_mask = c * mask, (1.0 - c) * mask
-    sim_positive = jnp.sum(sim * positive_mask) / jnp.maximum(jnp.sum(positive_mask), 1.0)
-    sim_negative = jnp.sum(sim * negative_mask) / jnp.maximum(jnp.sum(negative_mask), 1.0)
     decorr = decorrelation_loss(pred_a.descriptors, config.decorrelation) + decorrelation_loss(
         pred_b.descriptors, config.decorrelation
     )
-    hard = jnp.zeros(())
-    if config.alpha_hard:  # negatives only beyond the safe radius (hardest_negative_loss)
-        far = jax.lax.stop_gradient(corr.distances) > config.hard_safe_radius
-        hard = hardest_negative_loss(
-            pred_a.descriptors,
-            pred_b.descriptors,
-            c * mask > 0,
-            far & (c == 0) & (mask > 0),
-            config.margin_hard,
-        )
+    hard = (
+        _hard_term(pred_a.descriptors, pred_b.descriptors, corr, c, mask, config)
+        if config.alpha_hard
+        else jnp.zeros(())
+    )
     terms = {
         "usp": config.alpha_usp * usp,
         "uni_xy": config.alpha_uni_xy * uni,
@@ -276,11 +264,30 @@ def pair_loss(
         "loss": total,
         **{f"loss/{k}": v for k, v in terms.items()},
         **{f"usp/{k}": v for k, v in usp_metrics.items()},
-        "positives": jnp.sum(positive_mask),
-        "desc/sim_positive": jax.lax.stop_gradient(sim_positive),
-        "desc/sim_negative": jax.lax.stop_gradient(sim_negative),
+        **_similarity_metrics(pred_a.descriptors, pred_b.descriptors, c, mask),
     }
     return total, metrics
+
+
+def _hard_term(desc_a, desc_b, corr, c, mask, config: LossConfig) -> jax.Array:
+    """:func:`hardest_negative_loss` with the negatives beyond ``config.hard_safe_radius``."""
+    far = jax.lax.stop_gradient(corr.distances) > config.hard_safe_radius
+    positive, negative = c * mask > 0, far & (c == 0) & (mask > 0)
+    return hardest_negative_loss(desc_a, desc_b, positive, negative, config.margin_hard)
+
+
+def _similarity_metrics(desc_a, desc_b, c, mask) -> dict:
+    """Positive pairs counted, and the mean similarity of positive and of negative pairs: both
+    near 1 means the descriptors have collapsed to one vector (the hinge's positive term,
+    weighted lambda_d, outweighs the negatives when few cells compete; see
+    experiments/paper_network.py)."""
+    sim = jax.lax.stop_gradient(desc_a @ desc_b.T)
+    positive, negative = c * mask, (1.0 - c) * mask
+    return {
+        "positives": jnp.sum(positive),
+        "desc/sim_positive": jnp.sum(sim * positive) / jnp.maximum(jnp.sum(positive), 1.0),
+        "desc/sim_negative": jnp.sum(sim * negative) / jnp.maximum(jnp.sum(negative), 1.0),
+    }
 
 
 def total_loss(

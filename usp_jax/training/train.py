@@ -12,7 +12,6 @@ number, so a resumed run sees exactly the randomness an uninterrupted one would.
 
 from __future__ import annotations
 
-import contextlib
 import dataclasses
 import json
 import logging
@@ -21,7 +20,6 @@ import pathlib
 import re
 import shutil
 import signal
-import threading
 import time
 from collections.abc import Iterator
 from typing import Any
@@ -34,6 +32,7 @@ from jax.sharding import PartitionSpec as P
 from usp_jax.inference.weights import damaged_checkpoint
 from usp_jax.training import config as config_lib
 from usp_jax.training import distributed as multihost
+from usp_jax.training.interrupts import Interrupted, interrupts_deferred, sigterm_saves
 from usp_jax.training.metrics import (
     MetricsWriter,
     TrainingDiverged,
@@ -401,80 +400,21 @@ def _train_steps(
                 cause, f"writing step {failed} failed", run.workdir, mngr
             ) from error
     finally:
-        # A failed multi-process run leaves its pending save: finishing it would wait for
-        # processes that have stopped, and this one is about to exit.
-        if finished or single:
-            _settle(mngr)
-            mngr.close()
-        bar.close()
-        _close_quietly(run.writer)
-        if run.lock is not None:
-            run.lock.release()
+        _close_run(run, bar, settle=finished or single)
     return state
 
 
-class Terminated(KeyboardInterrupt):
-    """SIGTERM in a single-process run (a scheduler ending or preempting the job), raised where
-    Ctrl-C would be, so that the run saves its step as it does on Ctrl-C."""
-
-    signum = signal.SIGTERM
-
-
-def _raise_terminated(signum, frame) -> None:
-    raise Terminated
-
-
-@contextlib.contextmanager
-def sigterm_saves():
-    """SIGTERM raises :class:`Terminated` inside the block (a single process's main thread only;
-    in a multi-process run JAX's runtime takes SIGTERM and the processes stop together,
-    ``distributed.preempted``)."""
-    if threading.current_thread() is not threading.main_thread() or jax.process_count() > 1:
-        yield
-        return
-    previous = signal.signal(signal.SIGTERM, _raise_terminated)
-    try:
-        yield
-    finally:
-        signal.signal(signal.SIGTERM, previous)
-
-
-@contextlib.contextmanager
-def interrupts_deferred():
-    """Ctrl-C (and SIGTERM under :func:`sigterm_saves`) inside the block is raised when the
-    block ends, not inside it.
-
-    The step donates the old state's buffers to the new one: an interrupt between the donation
-    and the assignment would leave only deleted arrays to save. Only the main thread receives
-    Python's signals; a handler other than ours or Python's default (a background job's
-    SIG_IGN, a user's own) is left alone.
-    """
-    ours = {signal.SIGINT: signal.default_int_handler, signal.SIGTERM: _raise_terminated}
-    if threading.current_thread() is not threading.main_thread():
-        yield
-        return
-    deferred = [s for s, handler in ours.items() if signal.getsignal(s) is handler]
-    received = []
-    for signum in deferred:
-        signal.signal(signum, lambda signum, _: received.append(signum))
-    try:
-        yield
-    finally:
-        for signum in deferred:
-            signal.signal(signum, ours[signum])
-    if signal.SIGTERM in received:
-        raise Terminated
-    if received:
-        raise KeyboardInterrupt
-
-
-class Interrupted(KeyboardInterrupt):
-    """Training stopped by Ctrl-C (``signum`` SIGINT) or, in a single-process run, SIGTERM; the
-    message says from which step a rerun resumes."""
-
-    def __init__(self, message: str, signum: int = signal.SIGINT):
-        super().__init__(message)
-        self.signum = signum
+def _close_run(run: _Run, bar, settle: bool) -> None:
+    """Closes the checkpoints (waiting for a pending save when ``settle``), the progress bar,
+    the metric writer and the workdir lock. A failed multi-process run leaves its pending save
+    unsettled: finishing it would wait for processes that have stopped."""
+    if settle:
+        _settle(run.mngr)
+        run.mngr.close()
+    bar.close()
+    _close_quietly(run.writer)
+    if run.lock is not None:
+        run.lock.release()
 
 
 def _save_interrupted(
