@@ -182,6 +182,14 @@ def add_upsample(parser) -> None:
     )
 
 
+def add_network_options(parser) -> None:
+    """``--upsample``, ``--refine``/``--no-refine`` and ``--any-scale``: how the network runs,
+    for every command that runs it on photos (track and reconstruct take no ``--refine``)."""
+    add_upsample(parser)
+    add_refine(parser)
+    add_any_scale(parser)
+
+
 def add_any_rotation(parser) -> None:
     parser.add_argument(
         "--any-rotation",

@@ -43,9 +43,7 @@ def add_parser(subparsers) -> None:
     )
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.add_argument("--json", help="write the settings and every timed row as JSON here")
-    arguments.add_upsample(p)
-    arguments.add_refine(p)
-    arguments.add_any_scale(p)
+    arguments.add_network_options(p)
 
 
 def run(args) -> int | None:

@@ -31,9 +31,7 @@ def add_parser(subparsers) -> None:
     )
     p.add_argument("--out", help="PNG with the keypoints drawn")
     p.add_argument("--json", help="keypoints, scores and descriptors as JSON")
-    arguments.add_upsample(p)
-    arguments.add_refine(p)
-    arguments.add_any_scale(p)
+    arguments.add_network_options(p)
 
 
 def run(args) -> int | None:

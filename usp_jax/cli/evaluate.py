@@ -54,9 +54,7 @@ def add_parser(subparsers) -> None:
     p.add_argument("--json", help="write aggregate and per-pair numbers here")
     p.add_argument("--plots", help="folder for keypoint and match PNGs")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
-    arguments.add_upsample(p)
-    arguments.add_refine(p)
-    arguments.add_any_scale(p)
+    arguments.add_network_options(p)
     arguments.add_any_rotation(p)
 
 

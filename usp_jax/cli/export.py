@@ -39,9 +39,7 @@ def add_parser(subparsers) -> None:
         help="artifact keeps this many points (default 1000)",
     )
     arguments.add_nms_radius(p, 0.0, "artifact NMS radius in px (default 0)")
-    arguments.add_upsample(p)
-    arguments.add_refine(p)
-    arguments.add_any_scale(p)
+    arguments.add_network_options(p)
 
 
 def run(args) -> int | None:

@@ -33,9 +33,7 @@ def add_parser(subparsers) -> None:
     )
     p.add_argument("--out", help="PNG of the inlier matches and image 1's border warped by H")
     p.add_argument("--json", help="homography, matches, inlier mask and keypoints as JSON")
-    arguments.add_upsample(p)
-    arguments.add_refine(p)
-    arguments.add_any_scale(p)
+    arguments.add_network_options(p)
     arguments.add_any_rotation(p)
 
 
