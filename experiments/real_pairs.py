@@ -11,7 +11,7 @@ What changes against the shipped weights' last stage (``paper_network.py:stage10
 * stronger camera degradations per branch: noise up to 0.05, blur up to sigma 1.5.
 
 1,000 steps at batch 5 (stage 10's length was 1,500): at 0.24 steps/s on 2 CPU cores the run
-takes about 70 minutes, which is what one working session can give it beside its evaluations.
+takes about 70 minutes, the CPU time that could be given to it beside its evaluations.
 
 From the repository root, after ``experiments/build_corpus.py`` (its ``train`` split holds no
 photo of an evaluated real pair)::

@@ -13,7 +13,7 @@ non-corresponding point as a negative (``loss.hard_safe_radius=0``) left the ter
 neighbouring cells sample the same coarse descriptor features.
 
 The same photos, crops, warps and seed as ``real_pairs.py``, so that the two runs differ in the
-loss alone; 450 steps (the time one working session could give it on 2 CPU cores)::
+loss alone; 450 steps (the CPU time that could be given to it on 2 cores)::
 
     usp-jax train --config experiments/real_pairs_hard.py --init usp_jax/weights/paper.npz \\
         --data data/corpus/train --workdir runs/real-hard
