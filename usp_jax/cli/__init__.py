@@ -26,7 +26,8 @@ __all__ = ["main", "parse_args"]
 
 
 def main(argv: list[str] | None = None) -> int:
-    """Runs the command; returns its exit status (0, 2 for a user error, 130 if interrupted).
+    """Runs the command; returns its exit status (0; 2 for a user error; 130 on Ctrl-C, 143 when
+    SIGTERM stopped a single-process `train`).
 
     Run as the program (``argv`` None), a user error ends the process at once after its one
     line: the native threads of a checkpoint save that failed (a full disk) may still call back
