@@ -19,8 +19,9 @@ def add_parser(subparsers) -> None:
     )
     p.add_argument(
         "--data",
-        help="the photos: an image folder, tfds:NAME[:SPLIT], or 'sample' (the few bundled with"
-        " the installed packages); required unless the --config file sets data.source",
+        help="the photos: an image folder, tfds:NAME[:SPLIT], 'sample' (the few bundled with"
+        " the installed packages), or pairs:FOLDER (two views of a 3-D scene with depth and"
+        " pose, usp_jax.training.pairs); required unless the --config file sets data.source",
     )
     p.add_argument(
         "--workdir", required=True, help="checkpoints, config.json, metrics, TensorBoard"
@@ -150,8 +151,8 @@ def _check_data_given(args, cfg) -> None:
     )
     if not chosen and cfg.data.source == DataConfig().source:
         raise ValueError(
-            "--data is required: an image folder, tfds:NAME[:SPLIT], or 'sample' for the few"
-            " photos bundled with the installed packages"
+            "--data is required: an image folder, tfds:NAME[:SPLIT], 'sample' for the few"
+            " photos bundled with the installed packages, or pairs:FOLDER"
         )
 
 

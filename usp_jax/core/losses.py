@@ -19,6 +19,7 @@ import jax.numpy as jnp
 from usp_jax.core import correspondence
 from usp_jax.core.geometry import invert_homography, warp_points
 from usp_jax.core.model import Predictions
+from usp_jax.core.point_maps import PointMaps, map_points
 
 
 @dataclasses.dataclass(frozen=True)
@@ -178,36 +179,39 @@ def decorrelation_loss(descriptors: jax.Array, mode: str = "squared") -> jax.Arr
 def branch_correspondences(
     pred_a: Predictions,
     pred_b: Predictions,
-    homography: jax.Array,
+    warp: jax.Array | PointMaps,
     height: int,
     width: int,
     eps_correspond: float = LossConfig.eps_correspond,
 ) -> correspondence.Correspondences:
-    """Point-pairs of section 4 between unbatched branch predictions, T: [3, 3] from A to B."""
+    """Point-pairs of section 4 between unbatched branch predictions. ``warp`` maps A's pixels to
+    B's: a homography T [3, 3], or ``PointMaps`` (each [H, W, 2]) for views with parallax."""
+    if isinstance(warp, PointMaps):
+        a_in_b = map_points(warp.a_to_b, pred_a.keypoints)
+        b_in_a = map_points(warp.b_to_a, pred_b.keypoints)
+    else:
+        a_in_b = warp_points(warp, pred_a.keypoints)
+        b_in_a = warp_points(invert_homography(warp), pred_b.keypoints)
     return correspondence.find_correspondences(
-        warp_points(homography, pred_a.keypoints),
-        warp_points(invert_homography(homography), pred_b.keypoints),
-        pred_b.keypoints,
-        height,
-        width,
-        eps_correspond,
+        a_in_b, b_in_a, pred_b.keypoints, height, width, eps_correspond
     )
 
 
 def pair_loss(
     pred_a: Predictions,
     pred_b: Predictions,
-    homography: jax.Array,
+    warp: jax.Array | PointMaps,
     height: int,
     width: int,
     config: LossConfig = LossConfig(),
 ) -> tuple[jax.Array, dict]:
     """Total loss of eq. 4 for one image pair (unbatched ``Predictions``, M points each).
 
-    homography: [3, 3] T, mapping branch-A pixels to branch-B pixels.
+    warp: T, mapping branch-A pixels to branch-B pixels: a homography [3, 3], or ``PointMaps``
+    ([H, W, 2] each) for two views of a 3-D scene.
     Returns the scalar loss and a dict of metrics (every weighted term, K, mean d_k).
     """
-    corr = branch_correspondences(pred_a, pred_b, homography, height, width, config.eps_correspond)
+    corr = branch_correspondences(pred_a, pred_b, warp, height, width, config.eps_correspond)
 
     usp, usp_metrics = usp_loss(
         pred_a.scores,
@@ -293,16 +297,17 @@ def _similarity_metrics(desc_a, desc_b, c, mask) -> dict:
 def total_loss(
     pred_a: Predictions,
     pred_b: Predictions,
-    homographies: jax.Array,
+    warps: jax.Array | PointMaps,
     height: int,
     width: int,
     config: LossConfig = LossConfig(),
 ) -> tuple[jax.Array, dict]:
     """Batched eq. 4: ``pair_loss`` per image pair [B], averaged over the batch.
 
-    pred_a, pred_b: ``Predictions`` with a leading batch axis; homographies: [B, 3, 3].
+    pred_a, pred_b: ``Predictions`` with a leading batch axis; warps: homographies [B, 3, 3] or
+    ``PointMaps`` ([B, H, W, 2] each).
     """
-    losses, metrics = jax.vmap(lambda pa, pb, h: pair_loss(pa, pb, h, height, width, config))(
-        pred_a, pred_b, homographies
+    losses, metrics = jax.vmap(lambda pa, pb, w: pair_loss(pa, pb, w, height, width, config))(
+        pred_a, pred_b, warps
     )
     return jnp.mean(losses), jax.tree.map(jnp.mean, metrics)

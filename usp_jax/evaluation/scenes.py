@@ -26,6 +26,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from usp_jax.core import point_maps
 from usp_jax.inference.images import IMAGE_SUFFIXES, read_image
 
 #: Words in a file name that keep a photo out of every scene: the real evaluation pairs.
@@ -124,9 +125,7 @@ def backproject(depth: np.ndarray, camera: Camera) -> np.ndarray:
 def reproject(depth: np.ndarray, first: Camera, second: Camera) -> tuple[np.ndarray, np.ndarray]:
     """Where each pixel of the first view lands in the second: (pixels [H, W, 2], depth [H, W]
     in the second camera's frame), from the first view's ``depth`` [H, W]."""
-    points = backproject(depth, first).reshape(-1, 3)
-    pixels, z = project(points, second)
-    return pixels.reshape(*depth.shape, 2), z.reshape(depth.shape)
+    return point_maps.transfer(depth, first.K, second.K, *relative_pose(first, second))
 
 
 def covisible(
@@ -134,18 +133,7 @@ def covisible(
 ) -> np.ndarray:
     """bool [H, W]: the first view's pixels whose surface point the second view sees too: inside
     its image, in front of it, and not hidden (its depth there within ``tolerance`` relative)."""
-    pixels, z = reproject(depth1, first, second)
-    x, y = pixels[..., 0], pixels[..., 1]
-    inside = (x >= 0) & (y >= 0) & (x <= second.width - 1) & (y <= second.height - 1) & (z > 0)
-    seen = cv2.remap(
-        depth2.astype(np.float32),
-        np.where(inside, x, -1).astype(np.float32),
-        np.where(inside, y, -1).astype(np.float32),
-        cv2.INTER_NEAREST,
-        borderMode=cv2.BORDER_CONSTANT,
-        borderValue=0,
-    )
-    return inside & np.isfinite(depth1) & (np.abs(seen - z) <= tolerance * z)
+    return point_maps.seen(*reproject(depth1, first, second), depth2, tolerance)
 
 
 def _pixel_rays(camera: Camera) -> np.ndarray:

@@ -17,6 +17,9 @@ the jitted step. Sources, chosen by ``DataConfig.source``:
 
   then copy ``DIR`` to the training machine and use ``source="tfds:coco/2017"`` with
   ``tfds_data_dir=DIR`` (or set ``TFDS_DATA_DIR``). Any dataset with an ``image`` feature works.
+* ``pairs:FOLDER``: two views of a 3-D scene per example, with depth and relative pose
+  (``training.pairs``); a batch is then a dict of both images and their point maps, and the
+  step trains on the scene's own geometry instead of a random homography.
 
 ``make_dataset`` returns a grain ``MapDataset`` of batches: batch ``step`` is a pure function of
 (seed, step), so a run resumed at step s sees exactly the batches an uninterrupted run would.
@@ -36,6 +39,7 @@ import grain
 import numpy as np
 
 from usp_jax.inference.images import IMAGE_SUFFIXES, decode_image, sample_photos
+from usp_jax.training import pairs
 from usp_jax.training.crops import context_side, random_context_crop, random_crop
 
 log = logging.getLogger(__name__)
@@ -91,6 +95,11 @@ class DataConfig:
             raise ValueError(f"small_images {self.small_images!r} must be 'upscale' or 'skip'")
         if self.height < 1 or self.width < 1:
             raise ValueError(f"crop size {self.height}x{self.width} must be positive")
+        if self.context_window and self.source.startswith(pairs.PREFIX):
+            raise ValueError(
+                "context_window=True draws homographies of a photo; a pairs: source brings "
+                "its own geometry"
+            )
 
     @property
     def example_shape(self) -> tuple[int, int, int]:
@@ -157,6 +166,23 @@ class TfdsSource(Source):
         return self.data_source[index]["image"]
 
 
+class PairSource:
+    """Two-view pairs with depth and pose (``training.pairs``), one folder each."""
+
+    def __init__(self, spec: str):
+        self.folders = pairs.pair_folders(spec)
+
+    def __len__(self) -> int:
+        return len(self.folders)
+
+    def name(self, index: int) -> str:
+        return str(self.folders[index])
+
+    def __getitem__(self, index: int) -> pairs.ViewPair:
+        """Pair ``index``; ValueError/OSError if a file of it is missing or unreadable."""
+        return pairs.read_pair(self.folders[index])
+
+
 def _folder_source(spec: str) -> FileSource:
     root = pathlib.Path(spec).expanduser()
     if not root.exists():
@@ -200,8 +226,9 @@ def _tfds_source(spec: str, data_dir: str) -> TfdsSource:
     return TfdsSource(data_source, f"{name}[{split}]")
 
 
-def open_source(spec: str, *, tfds_data_dir: str = "") -> Source:
-    """Opens ``sample``, ``tfds:NAME[:SPLIT]`` or a folder path (see the module docstring).
+def open_source(spec: str, *, tfds_data_dir: str = "") -> Source | PairSource:
+    """Opens ``sample``, ``tfds:NAME[:SPLIT]``, ``pairs:FOLDER`` or a folder path (see the module
+    docstring).
 
     Raises FileNotFoundError for a missing folder, ValueError for an empty one or an unknown or
     unprepared TFDS dataset, each naming it. (A folder named ``sample`` is ``./sample``.)
@@ -213,6 +240,8 @@ def open_source(spec: str, *, tfds_data_dir: str = "") -> Source:
         return FileSource([path for _, path in photos])
     if spec.startswith("tfds:"):
         return _tfds_source(spec, tfds_data_dir)
+    if spec.startswith(pairs.PREFIX):
+        return PairSource(spec)
     return _folder_source(spec)
 
 
@@ -256,11 +285,11 @@ class Pipeline:
     """
 
     batches: grain.MapDataset
-    source: Source
+    source: Source | PairSource
     skipped: SkipLog
     read_options: grain.ReadOptions
 
-    def __getitem__(self, step: int) -> np.ndarray:
+    def __getitem__(self, step: int) -> np.ndarray | dict[str, np.ndarray]:
         return self.batches[step]
 
 
@@ -268,11 +297,12 @@ def _usable_crop(
     index: int,
     rng: np.random.Generator,
     *,
-    source: Source,
+    source: Source | PairSource,
     config: DataConfig,
     skipped: SkipLog,
-) -> np.ndarray:
-    """A crop of photo ``index``, or of the next usable one after it (wrapping around).
+) -> np.ndarray | dict[str, np.ndarray]:
+    """A crop of photo ``index``, or of the next usable one after it (wrapping around); from a
+    ``PairSource``, the example of pair ``index`` (``pairs.example``) or of the next usable one.
 
     Substituting the next usable photo keeps batch shapes fixed and depends only on the files, so
     it is as deterministic as the rest of the pipeline. ``rng`` is drawn from only by the crop.
@@ -284,8 +314,12 @@ def _usable_crop(
         try:
             image = source[i]
         except (OSError, ValueError) as error:
-            skipped.add(i, f"unreadable image {error}")
+            skipped.add(
+                i, f"unreadable {'pair' if isinstance(source, PairSource) else 'image'} {error}"
+            )
             continue
+        if isinstance(source, PairSource):
+            return pairs.example(image, config.height, config.width, rng)
         if config.small_images == "skip" and (
             image.shape[0] < config.height or image.shape[1] < config.width
         ):

@@ -24,6 +24,7 @@ from jax.sharding import PartitionSpec as P
 from usp_jax.core import augment, distillation, geometry, losses
 from usp_jax.core.cpu_kernels import compiler_options
 from usp_jax.core.model import ModelConfig, Predictions, UnsuperPoint, init_variables
+from usp_jax.core.point_maps import PointMaps
 from usp_jax.inference.weights import load_named
 from usp_jax.training import config as config_lib
 
@@ -198,6 +199,26 @@ def make_window_branches(
     return images_a, images_b, homographies, valid_b
 
 
+def make_pair_branches(
+    key: jax.Array, batch: dict, photometric_cfg: augment.PhotometricConfig
+) -> tuple[jax.Array, jax.Array, PointMaps]:
+    """Section 3 for two views of a 3-D scene (a ``pairs:`` source, ``training.pairs``): the views
+    are the branches, each augmented independently, and their point maps stand for T.
+
+    batch: ``image_a``, ``image_b`` uint8 [B, H, W, 3], ``a_to_b``, ``b_to_a`` float32
+    [B, H, W, 2]. Returns (images_a, images_b, ``PointMaps``).
+    """
+    k_a, k_b = jax.random.split(key)
+    augment_all = jax.vmap(lambda k, im: augment.photometric_augment(k, im, photometric_cfg))
+    images_a, images_b = (batch[k].astype(jnp.float32) / 255.0 for k in ("image_a", "image_b"))
+    count = images_a.shape[0]
+    return (
+        augment_all(jax.random.split(k_a, count), images_a),
+        augment_all(jax.random.split(k_b, count), images_b),
+        PointMaps(batch["a_to_b"], batch["b_to_a"]),
+    )
+
+
 def score_position_r2(scores: jax.Array, keypoints: jax.Array) -> jax.Array:
     """How much of the score variation is a linear ramp across the image, mean over the batch.
 
@@ -232,14 +253,14 @@ def siamese_loss(
     batch_stats: Any,
     images_a: jax.Array,
     images_b: jax.Array,
-    homographies: jax.Array,
+    warps: jax.Array | PointMaps,
     config: config_lib.Config,
     teacher_pred: Predictions | None = None,
 ) -> tuple[jax.Array, tuple[dict, Any]]:
     """Eq. 4 of a batch of branch pairs, both branches through one network in training mode.
 
-    images_a, images_b: [B, H, W, 3] float in [0, 1]; homographies: [B, 3, 3] T mapping A's pixels
-    to B's (as ``make_branches`` returns them). With ``teacher_pred`` (a frozen teacher's
+    images_a, images_b: [B, H, W, 3] float in [0, 1]; warps: T mapping A's pixels to B's,
+    homographies [B, 3, 3] (as ``make_branches`` returns them) or ``PointMaps``. With ``teacher_pred`` (a frozen teacher's
     predictions of ``images_a`` then ``images_b``, [2B, ...]) the loss is ``distill.alpha_self``
     times eq. 4 plus ``distillation.distillation_loss``. Returns (loss, (metrics, new
     batch_stats)), the metrics ``losses.total_loss``'s (and ``distill/``'s) and the ``pred/``
@@ -256,7 +277,7 @@ def siamese_loss(
     )
     pred_a = jax.tree.map(lambda x: x[:batch], pred)
     pred_b = jax.tree.map(lambda x: x[batch:], pred)
-    loss, metrics = losses.total_loss(pred_a, pred_b, homographies, height, width, config.loss)
+    loss, metrics = losses.total_loss(pred_a, pred_b, warps, height, width, config.loss)
     if teacher_pred is not None:
         teacher_a = jax.tree.map(lambda x: x[:batch], teacher_pred)
         teacher_b = jax.tree.map(lambda x: x[batch:], teacher_pred)
@@ -272,12 +293,13 @@ def siamese_loss(
 
 def train_step(
     state: TrainState,
-    images: jax.Array,
+    images: jax.Array | dict,
     config: config_lib.Config,
     teacher: Teacher | None = None,
 ) -> tuple[TrainState, dict]:
     """One optimisation step on a uint8 batch [B, H, W, 3] (with ``config.data.context_window``,
-    context windows [B, S, S, 4], see ``make_window_branches``); a pure function of its inputs.
+    context windows [B, S, S, 4], see ``make_window_branches``; from a ``pairs:`` source, a dict
+    of two views and their point maps, see ``make_pair_branches``); a pure function of its inputs.
     A ``teacher`` sees both branches in inference mode, without gradient, and its predictions
     are the distillation targets (``siamese_loss``).
 
@@ -286,11 +308,14 @@ def train_step(
     the state unchanged and reports ``finite = 0`` so the loop can stop on the last good state.
     """
     optimizer = make_optimizer(config.optim)
-    images = images.astype(jnp.float32) / 255.0
     step_key = jax.random.fold_in(state.key, state.step)
     branch_stats = {}
-    if config.data.context_window:
-        images_a, images_b, homographies, valid_b = make_window_branches(
+    if isinstance(images, dict):
+        images_a, images_b, warps = make_pair_branches(step_key, images, config.photometric)
+        branch_stats["data/seen_in_b"] = jnp.mean(jnp.isfinite(images["a_to_b"][..., 0]))
+    elif config.data.context_window:
+        images = images.astype(jnp.float32) / 255.0
+        images_a, images_b, warps, valid_b = make_window_branches(
             step_key,
             images,
             config.data.height,
@@ -300,8 +325,8 @@ def train_step(
         )
         branch_stats["data/valid_b"] = jnp.mean(valid_b)
     else:
-        images_a, images_b, homographies = make_branches(
-            step_key, images, config.homography, config.photometric
+        images_a, images_b, warps = make_branches(
+            step_key, images.astype(jnp.float32) / 255.0, config.homography, config.photometric
         )
 
     teacher_pred = None
@@ -314,7 +339,7 @@ def train_step(
 
     def loss_fn(params):
         return siamese_loss(
-            params, state.batch_stats, images_a, images_b, homographies, config, teacher_pred
+            params, state.batch_stats, images_a, images_b, warps, config, teacher_pred
         )
 
     (loss, (metrics, batch_stats)), grads = jax.value_and_grad(loss_fn, has_aux=True)(state.params)

@@ -357,7 +357,9 @@ def _train_steps(
         try:
             for step in range(run.start, num_steps):
                 local = next(batches)
-                images = jax.make_array_from_process_local_data(batch_sharding, local)
+                images = jax.tree.map(
+                    lambda x: jax.make_array_from_process_local_data(batch_sharding, x), local
+                )
                 with interrupts_deferred():
                     state, metrics = step_fn(state, images)
                 done = step + 1

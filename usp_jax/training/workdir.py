@@ -184,6 +184,8 @@ def _resolved(spec: str) -> str:
 
     if not spec or spec == "sample" or spec.startswith("tfds:") or spec in PRETRAINED:
         return spec
+    if spec.startswith("pairs:"):
+        return "pairs:" + _resolved(spec.removeprefix("pairs:"))
     return str(pathlib.Path(spec).expanduser().resolve())
 
 
