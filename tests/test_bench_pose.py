@@ -40,3 +40,16 @@ def test_pairs_without_poses_are_one_line_and_exit_2(bench_pose, monkeypatch, ca
         bench_pose.main()
     err = capsys.readouterr().err.strip().splitlines()
     assert stop.value.code == 2 and len(err) == 1 and "without its poses" in err[0]
+
+
+def test_ncc_refines_a_network_or_a_baseline_row_with_default_or_given_settings(bench_pose):
+    label, options = bench_pose.candidate("distilled:640/ncc", 1000)
+    assert label == "UnsuperPoint distilled at 640 px +ncc" and options["match_refinement"] == {}
+    label, options = bench_pose.candidate("paper/ncc=3,2,0.7,5", 1000)
+    assert label == "UnsuperPoint paper +ncc 3,2,0.7,5"
+    assert options["match_refinement"] == dict(radius=3, search=2, min_ncc=0.7, affine_steps=5)
+    assert bench_pose.baseline_spec("SIFT/ncc") == ("SIFT", "SIFT +ncc", {})
+    assert bench_pose.baseline_spec("SIFT") == ("SIFT", "SIFT", None)
+    for bad in ("SIFT/nms2", "SIFT/ncc=5"):
+        with pytest.raises(ValueError):
+            bench_pose.baseline_spec(bad)

@@ -104,6 +104,34 @@ def test_planar_verification_finds_the_same_motion(frames):
     assert np.median(_step_errors(results)) < 1.0
 
 
+@pytest.mark.parametrize("refine", [False, True])
+def test_refined_matches_reach_verification_only_when_asked(frames, monkeypatch, refine):
+    # Points of frame 0 on a grid, frame 1's where the known motion takes them plus 1 px.
+    xs, ys = np.meshgrid(np.arange(16.0, 112.0, 8.0), np.arange(16.0, 80.0, 8.0))
+    points0 = np.stack([xs, ys], axis=-1).reshape(-1, 2)
+    truth = _apply(motion(1), points0)
+    points1 = truth + np.where(np.arange(len(truth))[:, None] % 2, 1.0, -1.0) * [1.0, 0.0]
+    descriptors = np.eye(len(points0), dtype=np.float32)  # match i to i
+    features = [
+        Features(p.astype(np.float32), np.ones(len(p)), descriptors) for p in (points0, points1)
+    ]
+    seen = {}
+
+    def verify(points1, points2, config):
+        seen["p2"] = points2
+        return np.ones(len(points2), bool)
+
+    monkeypatch.setattr(tracking, "verify", verify)
+    config = tracking.TrackingConfig(refine_matches=refine)
+    greys = tuple(tracking.grey(frame) for frame in frames[:2])
+    matches, _ = tracking.match_frames(*features, cv2.NORM_L2, config, greys)
+    error = np.linalg.norm(seen["p2"] - truth[matches[:, 1]], axis=1)
+    if refine:  # closer; the turn of 3 degrees and the frames' resampling bias plain NCC
+        assert np.median(error) < 0.4
+    else:
+        np.testing.assert_allclose(error, 1.0, atol=1e-5)
+
+
 def test_track_ids_continue_previous_then_bridge_from_the_keyframe_then_start_new():
     ids, next_id = tracking.assign_track_ids(
         5,

@@ -19,9 +19,8 @@ def add_parser(subparsers) -> None:
     )
     p.add_argument(
         "--data",
-        help="the photos: an image folder, tfds:NAME[:SPLIT], 'sample' (the few bundled with"
-        " the installed packages), or pairs:FOLDER (two views of a 3-D scene with depth and"
-        " pose, usp_jax.training.pairs); required unless the --config file sets data.source",
+        help="an image folder, tfds:NAME[:SPLIT], 'sample' (the photos bundled with the installed"
+        " packages) or pairs:FOLDER (views with depth and pose); required unless --config sets it",
     )
     p.add_argument(
         "--workdir", required=True, help="checkpoints, config.json, metrics, TensorBoard"

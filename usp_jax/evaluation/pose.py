@@ -31,6 +31,7 @@ import cv2
 import numpy as np
 
 from usp_jax.inference.images import read_image
+from usp_jax.inference.match_refinement import refine_matches
 from usp_jax.inference.matching import nearest_neighbours
 
 #: Error thresholds of the AUC, degrees.
@@ -179,11 +180,33 @@ def pose_auc(errors: Sequence[float], thresholds: Sequence[float] = THRESHOLDS) 
     return aucs
 
 
-def pair_row(method_name: str, pair: PosePair, features1, features2, norm: int) -> dict:
-    """One method's result on one pair: matches, inliers and the pose errors (inf: none)."""
+def grey(image: np.ndarray) -> np.ndarray:
+    """float32 ``[H, W]`` grey levels of a uint8 RGB ``[H, W, 3]`` (or grey ``[H, W]``) image."""
+    image = np.asarray(image)
+    return (cv2.cvtColor(image, cv2.COLOR_RGB2GRAY) if image.ndim == 3 else image).astype(
+        np.float32
+    )
+
+
+def pair_row(
+    method_name: str, pair: PosePair, features1, features2, norm: int, refine: dict | None = None
+) -> dict:
+    """One method's result on one pair: matches, inliers and the pose errors (inf: none).
+
+    ``refine``: None, or keyword arguments of ``match_refinement.refine_matches`` ({} for its
+    defaults): the matched points of image 2 are moved to the NCC peak of image 1's patches
+    before the pose is estimated; the row then also holds ``moved`` (how many were) and
+    ``refine_ms`` (the refinement's wall time for the pair, grey conversion included)."""
     matches = nearest_neighbours(features1.descriptors, features2.descriptors, norm, True)
     points1 = features1.keypoints[matches[:, 0]]
     points2 = features2.keypoints[matches[:, 1]]
+    extra = {}
+    if refine is not None:
+        start = time.perf_counter()
+        points2, moved = refine_matches(
+            grey(pair.image1), grey(pair.image2), points1, points2, **refine
+        )
+        extra = {"moved": int(moved.sum()), "refine_ms": 1e3 * (time.perf_counter() - start)}
     estimate = estimate_pose(points1, points2, pair.K1, pair.K2)
     rotation = translation = math.inf
     inliers = 0
@@ -199,6 +222,7 @@ def pair_row(method_name: str, pair: PosePair, features1, features2, norm: int) 
         "rotation_error": rotation,
         "translation_error": translation,
         "error": max(rotation, translation),
+        **extra,
     }
 
 
@@ -206,8 +230,9 @@ def evaluate_pose(pairs: Sequence[PosePair], methods: dict, progress=None) -> li
     """Every method on every pair: rows of :func:`pair_row` plus ``ms`` (the two detections'
     mean wall time per image). The methods take turns pair by pair, so a drift in the machine's
     load reaches all of them alike. ``methods``: name -> an object with ``detect(image) ->
-    Features`` and optionally ``norm`` (cv2.NORM_L2 when absent); ``progress`` wraps the pairs
-    (e.g. tqdm)."""
+    Features`` and optionally ``norm`` (cv2.NORM_L2 when absent) and ``match_refinement``
+    (:func:`pair_row`'s ``refine``; None when absent); ``progress`` wraps the pairs (e.g.
+    tqdm)."""
     rows = []
     for pair in pairs if progress is None else progress(pairs):
         for name, method in methods.items():
@@ -215,7 +240,9 @@ def evaluate_pose(pairs: Sequence[PosePair], methods: dict, progress=None) -> li
             features1 = method.detect(pair.image1)
             features2 = method.detect(pair.image2)
             ms = (time.perf_counter() - start) * 500  # per image
-            row = pair_row(name, pair, features1, features2, getattr(method, "norm", cv2.NORM_L2))
+            norm = getattr(method, "norm", cv2.NORM_L2)
+            refine = getattr(method, "match_refinement", None)
+            row = pair_row(name, pair, features1, features2, norm, refine)
             rows.append({**row, "ms": ms})
     return rows
 
@@ -225,7 +252,8 @@ def summarize(
 ) -> dict[str, dict]:
     """Per method: ``auc`` {threshold: (AUC, (low, high))} with 95% percentile intervals of a
     bootstrap over the pairs (the same draws for every method: all met the same pairs), the
-    median ``ms`` per image, mean ``inliers`` and ``matches``, and the pair count."""
+    median ``ms`` per image, mean ``inliers`` and ``matches``, the pair count, and for a method
+    with refined matches the median ``refine_ms`` per pair."""
     by_method: dict[str, list[dict]] = {}
     for row in rows:
         by_method.setdefault(row["method"], []).append(row)
@@ -248,6 +276,8 @@ def summarize(
             "matches": statistics.fmean(r["matches"] for r in found),
             "pairs": len(found),
         }
+        if any("refine_ms" in r for r in found):
+            table[name]["refine_ms"] = statistics.median(r.get("refine_ms", 0.0) for r in found)
     return table
 
 

@@ -29,6 +29,7 @@ import numpy as np
 
 from usp_jax.inference.detector import Detector
 from usp_jax.inference.features import Features
+from usp_jax.inference.match_refinement import refine_matches
 from usp_jax.inference.matching import (
     RANSAC_MAX_ITERS,
     RANSAC_THRESHOLD,
@@ -64,11 +65,16 @@ class TrackingConfig:
     """``planar``: verify matches with a homography (a planar scene or a turning camera) instead
     of the fundamental matrix; either way RANSAC's inlier distance is the protocol's 3 px (to
     the epipolar line, or of the homography's reprojection). ``keyframe_ratio``: the keyframe
-    rule's fraction (module docstring). ``every``: track every N-th input frame."""
+    rule's fraction (module docstring). ``every``: track every N-th input frame.
+    ``refine_matches``: before verification, move each match's point in the later frame to the
+    sub-pixel NCC peak of a grey patch around its point in the earlier one
+    (``match_refinement.refine_matches``, its defaults); the verified geometry uses the moved
+    points, the frames' points stay as detected. Off by default."""
 
     planar: bool = False
     keyframe_ratio: float = 0.5
     every: int = 1
+    refine_matches: bool = False
 
     def __post_init__(self):
         if not 0 <= self.keyframe_ratio <= 1:
@@ -129,12 +135,28 @@ def verify(points1: np.ndarray, points2: np.ndarray, config: TrackingConfig) -> 
 
 
 def match_frames(
-    features1: Features, features2: Features, norm: int, config: TrackingConfig
+    features1: Features,
+    features2: Features,
+    norm: int,
+    config: TrackingConfig,
+    greys: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Mutual nearest neighbours of two frames' descriptors (``matching.nearest_neighbours``)
-    and :func:`verify`: (int64 ``[K, 2]`` matches, bool ``[K]`` inliers)."""
+    and :func:`verify`: (int64 ``[K, 2]`` matches, bool ``[K]`` inliers). With
+    ``config.refine_matches`` and the frames' grey images ``greys`` (float32 ``[H, W]`` each),
+    the matched points of frame 2 are refined (``match_refinement``) before verification."""
     matches = nearest_neighbours(features1.descriptors, features2.descriptors, norm, True)
-    return matches, verify(*matched_points(features1, features2, matches), config)
+    points1, points2 = matched_points(features1, features2, matches)
+    if config.refine_matches and greys is not None:
+        points2 = refine_matches(*greys, points1, points2)[0]
+    return matches, verify(points1, points2, config)
+
+
+def grey(frame: np.ndarray) -> np.ndarray:
+    """float32 ``[H, W]`` grey levels of a uint8 RGB ``[H, W, 3]`` (or grey) frame."""
+    return (cv2.cvtColor(frame, cv2.COLOR_RGB2GRAY) if frame.ndim == 3 else frame).astype(
+        np.float32
+    )
 
 
 def assign_track_ids(
@@ -188,7 +210,7 @@ def track(
     detector = default_detector() if detector is None else detector
     norm = getattr(detector, "norm", cv2.NORM_L2)
     no_matches = (np.zeros((0, 2), np.int64), np.zeros(0, bool))
-    previous = keyframe = None  # (index, features, track ids)
+    previous = keyframe = None  # (index, features, track ids, grey frame or None)
     next_id, shape = 0, None
     for index, frame in itertools.islice(enumerate(frames), 0, None, config.every):
         frame = np.asarray(frame)
@@ -201,13 +223,16 @@ def track(
             )
         start = time.perf_counter()
         features = detector.detect(frame)
+        image = grey(frame) if config.refine_matches else None
         count = len(features.keypoints)
         to_previous = to_keyframe = no_matches
         separate = previous is not None and keyframe[0] != previous[0]
         if previous is not None:
-            to_previous = match_frames(previous[1], features, norm, config)
+            to_previous = match_frames(previous[1], features, norm, config, (previous[3], image))
             to_keyframe = (
-                match_frames(keyframe[1], features, norm, config) if separate else to_previous
+                match_frames(keyframe[1], features, norm, config, (keyframe[3], image))
+                if separate
+                else to_previous
             )
         ids, next_id = assign_track_ids(
             count,
@@ -220,7 +245,7 @@ def track(
         inliers, keyframe_inliers = int(to_previous[1].sum()), int(to_keyframe[1].sum())
         is_keyframe = keyframe is None or keyframe_inliers < config.keyframe_ratio * inliers
         matched_to = index if keyframe is None else keyframe[0]
-        previous = (index, features, ids)
+        previous = (index, features, ids, image)
         if is_keyframe:
             keyframe = previous
         yield TrackedFrame(
