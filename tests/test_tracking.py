@@ -132,6 +132,49 @@ def test_refined_matches_reach_verification_only_when_asked(frames, monkeypatch,
         np.testing.assert_allclose(error, 1.0, atol=1e-5)
 
 
+def test_a_frame_costs_one_refinement_its_match_to_the_previous_frame(frames, monkeypatch):
+    """The match to the keyframe is verified as matched: refining it too changed nothing
+    measurable on footage (RESULTS.md "Video") and cost a second refinement per frame."""
+    calls = []
+
+    def counting(*args, **kwargs):
+        calls.append(kwargs["affine_steps"])
+        return refine_matches(*args, **kwargs)
+
+    refine_matches = tracking.refine_matches
+    monkeypatch.setattr(tracking, "refine_matches", counting)
+    results = list(tracking.track(frames[:4], opencv_method("SIFT", 200)))
+    assert any(r.keyframe != r.index - 1 for r in results[2:])  # a keyframe match was made
+    assert calls == [tracking.AFFINE_STEPS] * 3
+    calls.clear()
+    list(
+        tracking.track(
+            frames[:3], opencv_method("SIFT", 200), tracking.TrackingConfig(refine_matches=False)
+        )
+    )
+    assert calls == []
+
+
+@pytest.mark.parametrize(
+    "options, refined",
+    [(["--method", "orb"], False), (["--method", "orb", "--refine-matches"], True), ([], True)],
+)
+def test_cli_refines_the_networks_matches_by_default_and_a_peers_when_asked(
+    frames, tmp_path, monkeypatch, options, refined
+):
+    configs = []
+    track = tracking.track
+
+    def recording(frames, detector, config):
+        configs.append(config)
+        return track(frames, detector, config)
+
+    monkeypatch.setattr(tracking, "track", recording)
+    _write_video(source := tmp_path / "tiny.avi", frames[:2])
+    assert main(["track", str(source), "--no-progress", "--top", "50", *options]) == 0
+    assert [c.refine_matches for c in configs] == [refined]
+
+
 def test_track_ids_continue_previous_then_bridge_from_the_keyframe_then_start_new():
     ids, next_id = tracking.assign_track_ids(
         5,
@@ -267,7 +310,7 @@ def test_cli_progress_bar_names_the_source_and_method(frames, tmp_path, capsys):
         (["--weights", "paper", "--network-side", "0"], ("paper", 0, False)),
     ],
 )
-def test_cli_network_defaults_to_the_distilled_weights_at_640_px(
+def test_cli_network_defaults_to_the_distilled_weights_at_the_video_side(
     frames, tmp_path, monkeypatch, options, expected
 ):
     """``track``'s own default is the real-time one (``tracking.default_detector``), not the

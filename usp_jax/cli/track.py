@@ -14,10 +14,13 @@ network matches; turning every frame back would add two detections per frame for
 camera that rolls fast is better served by ``--weights rotation``.
 
 The network's defaults are the video ones (``tracking.default_detector``): ``--weights
-distilled``, detecting on a copy of each frame at most ``--network-side 640`` px long (the most
-accurate relative poses at SIFT's time per frame, ``tracking.VIDEO_SIDE``), because the package
-default, ``paper`` at full size, takes ~6x SIFT's time per frame. The sub-pixel
-refinement stays off, whatever the weights: on footage it adds time and no inliers.
+distilled``, detecting on a copy of each frame at most ``--network-side 480`` px long, its
+matches to the previous frame refined (``--refine-matches``: NCC peak and affine Lucas-Kanade
+polish, ``tracking.TrackingConfig``): the most accurate relative poses within SIFT's time per
+frame on rendered rooms and on footage (``tracking.VIDEO_SIDE``), because the package default, ``paper`` at
+full size, takes ~6x SIFT's time per frame. The peers (``--method``) run as they are unless
+``--refine-matches`` is given. The network's own sub-pixel keypoint refinement stays off,
+whatever the weights: on footage it adds time and no inliers.
 """
 
 from __future__ import annotations
@@ -87,6 +90,14 @@ def add_parser(subparsers) -> None:
         " instead of the fundamental matrix",
     )
     p.add_argument(
+        "--refine-matches",
+        action=argparse.BooleanOptionalAction,
+        default=None,
+        help="move each match's point to the NCC peak of the previous frame's patch, polished by"
+        f" {tracking.AFFINE_STEPS} affine Lucas-Kanade steps, before verification (default: on"
+        " for --method usp, off for the peers)",
+    )
+    p.add_argument(
         "--json",
         help="one record per frame: index, points, track ids, matches, inliers, ms; beside it,"
         " NAME.npz holds every frame's points, scores, descriptors and track ids"
@@ -128,6 +139,17 @@ def _method(args):
     if getattr(args, "any_scale", False):
         options["any_scale"] = True
     return arguments.load_detector(args, **options)
+
+
+def _config(args) -> tracking.TrackingConfig:
+    """The tracker's settings: ``--planar``, ``--every``, and ``--refine-matches`` (unset: on
+    for the network, off for the peers)."""
+    refine = getattr(args, "refine_matches", None)
+    return tracking.TrackingConfig(
+        planar=args.planar,
+        every=args.every,
+        refine_matches=args.method == "usp" if refine is None else refine,
+    )
 
 
 def features_path(json_path: str) -> pathlib.Path:
@@ -235,7 +257,7 @@ def run(args) -> int:
     features = features_path(args.json) if args.json else None
     method = _method(args)
     source = video.open_source(args.source, args.max_side)
-    config = tracking.TrackingConfig(planar=args.planar, every=args.every)
+    config = _config(args)
     current = {}
 
     def remember(frames):

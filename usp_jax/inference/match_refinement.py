@@ -44,16 +44,30 @@ _Y, _X = np.mgrid[-1:2, -1:2].reshape(2, 9).astype(np.float64)
 _QUADRATIC = np.linalg.pinv(np.stack([np.ones(9), _X, _Y, _X**2, _X * _Y, _Y**2], axis=1))
 
 
-def _bilinear(image: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
-    """``image`` [H, W] at float positions x, y (any equal shape, all within [0, W-1] x
-    [0, H-1]) by bilinear interpolation, float64."""
-    height, width = image.shape
-    x0 = np.clip(np.floor(x).astype(np.int64), 0, width - 2)
-    y0 = np.clip(np.floor(y).astype(np.int64), 0, height - 2)
-    fx, fy = x - x0, y - y0
-    top = image[y0, x0] * (1 - fx) + image[y0, x0 + 1] * fx
-    bottom = image[y0 + 1, x0] * (1 - fx) + image[y0 + 1, x0 + 1] * fx
-    return top * (1 - fy) + bottom * fy
+def _template_blocks(
+    grey: np.ndarray, points: np.ndarray, radius: int
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(blocks float32 [M, side + 1, side + 1], fx [M, 1, 1], fy [M, 1, 1]): the whole pixels
+    around each point of ``points`` [M, 2] that the bilinear template of side ``2 radius + 1``
+    reads (every point ``radius`` or more px inside the image), and the point's fractional
+    offsets. The template's grid is whole-pixel spaced, so one (fx, fy) serves all its pixels."""
+    size = 2 * radius + 2
+    corner = np.floor(points)
+    fraction = (points - corner).astype(np.float32)
+    corner = corner.astype(np.int64) - radius
+    view = np.lib.stride_tricks.sliding_window_view(grey, (size, size))
+    return view[corner[:, 1], corner[:, 0]], fraction[:, 0, None, None], fraction[:, 1, None, None]
+
+
+def templates(grey: np.ndarray, points: np.ndarray, radius: int) -> np.ndarray:
+    """float32 [M, side, side]: the grey patches of side ``2 radius + 1`` centred on
+    ``points`` [M, 2] (x, y; each at least ``radius`` px inside the image, ``grey`` float32),
+    bilinearly sampled at whole-pixel offsets and made zero-mean."""
+    blocks, fx, fy = _template_blocks(grey, points, radius)
+    top = blocks[:, :-1, :-1] * (1 - fx) + blocks[:, :-1, 1:] * fx
+    bottom = blocks[:, 1:, :-1] * (1 - fx) + blocks[:, 1:, 1:] * fx
+    template = top * (1 - fy) + bottom * fy
+    return template - template.mean(axis=(1, 2), keepdims=True)
 
 
 def _inside(points: np.ndarray, shape: tuple[int, int], margin: float) -> np.ndarray:
@@ -72,6 +86,20 @@ def _inside(points: np.ndarray, shape: tuple[int, int], margin: float) -> np.nda
     )
 
 
+def _box_sums(values: np.ndarray, side: int) -> np.ndarray:
+    """float64 [..., U, U]: the sums of every ``side`` x ``side`` window of ``values``
+    [..., S, S] (U = S - side + 1), summed along rows, then columns."""
+    values = values.astype(np.float64)
+    count = values.shape[-1] - side + 1
+    rows = values[..., :count].copy()
+    for shift in range(1, side):
+        rows += values[..., shift : shift + count]
+    total = rows[..., :count, :].copy()
+    for shift in range(1, side):
+        total += rows[..., shift : shift + count, :]
+    return total
+
+
 def ncc_scores(
     grey1: np.ndarray,
     grey2: np.ndarray,
@@ -79,33 +107,36 @@ def ncc_scores(
     centres2: np.ndarray,
     radius: int,
     search: int,
+    template: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """(NCC float64 ``[M, 2 search + 1, 2 search + 1]`` indexed [match, dy, dx], template
     standard deviation [M]) of the templates of image 1 around ``points1`` [M, 2] against
     image 2's patches centred on the whole pixels ``centres2`` int [M, 2] plus each offset.
-    Every template and window must lie inside its image."""
-    side = 2 * radius + 1
-    grid = np.arange(-radius, radius + 1, dtype=np.float64)
-    template = _bilinear(
-        grey1,
-        points1[:, 0, None, None] + grid[None, None, :],
-        points1[:, 1, None, None] + grid[None, :, None],
-    )  # [M, side, side]
-    template -= template.mean(axis=(1, 2), keepdims=True)
-    template_norm = np.sqrt(np.einsum("mij,mij->m", template, template))
-    steps = np.arange(-(radius + search), radius + search + 1)
-    region = _bilinear(
-        grey2,
-        centres2[:, 0, None, None] + steps[None, None, :],
-        centres2[:, 1, None, None] + steps[None, :, None],
-    )  # [M, span, span]
-    windows = np.lib.stride_tricks.sliding_window_view(region, (side, side), axis=(1, 2))
-    sums = np.einsum("muvij->muv", windows)
-    squares = np.einsum("muvij,muvij->muv", windows, windows)
+    Every template and window must lie inside its image. ``template``: :func:`templates` of
+    ``points1``, when the caller has it already."""
+    side, width = 2 * radius + 1, 2 * search + 1
+    if template is None:
+        template = templates(np.asarray(grey1, np.float32), points1, radius)
+    template_norm = np.sqrt(np.einsum("mij,mij->m", template, template, dtype=np.float64))
+    span = side + 2 * search
+    corner = centres2 - (radius + search)
+    view = np.lib.stride_tricks.sliding_window_view(np.asarray(grey2, np.float32), (span, span))
+    region = view[corner[:, 1], corner[:, 0]]  # [M, span, span], whole pixels: no interpolation
+    # Centred on its mean: the windows' variance from sums stays exact in float32 products.
+    region = region - region.mean(axis=(1, 2), keepdims=True)
+    sums, squares = _box_sums(np.stack([region, region * region]), side)
     window_var = np.maximum(squares - sums**2 / side**2, 0.0)
-    product = np.einsum("mij,muvij->muv", template, windows)  # the template is zero-mean
+    product = np.empty((len(region), width, width), np.float64)
+    for v in range(width):  # the template is zero-mean: its dot product with each window
+        for u in range(width):
+            product[:, v, u] = np.einsum(
+                "mij,mij->m", template, region[:, v : v + side, u : u + side]
+            )
     denominator = template_norm[:, None, None] * np.sqrt(window_var)
-    ncc = np.where(denominator > 0, product / np.where(denominator > 0, denominator, 1.0), -1.0)
+    # A window flat to rounding (its variance a millionth of a grey level's) correlates with
+    # nothing: as an exactly flat one, or a flat template.
+    flat = (window_var <= 1e-6 * side**2) | (template_norm[:, None, None] <= 0)
+    ncc = np.where(flat, -1.0, product / np.where(flat, 1.0, denominator))
     return ncc, template_norm / side
 
 
@@ -123,6 +154,54 @@ def quadratic_peak(values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return np.stack([np.where(valid, x, 0.0), np.where(valid, y, 0.0)], axis=1), valid
 
 
+def _extrapolated(grey: np.ndarray) -> np.ndarray:
+    """float32 [H + 2, W + 2]: ``grey`` framed by one pixel continuing each edge linearly
+    (2 edge - next), so that a central difference on it is ``np.gradient``'s one-sided one
+    at the edge (the frame's corners are never read)."""
+    height, width = grey.shape
+    framed = np.empty((height + 2, width + 2), np.float32)
+    framed[1:-1, 1:-1] = grey
+    framed[0, 1:-1] = 2 * grey[0] - grey[min(1, height - 1)]
+    framed[-1, 1:-1] = 2 * grey[-1] - grey[max(height - 2, 0)]
+    framed[1:-1, 0] = 2 * grey[:, 0] - grey[:, min(1, width - 1)]
+    framed[1:-1, -1] = 2 * grey[:, -1] - grey[:, max(width - 2, 0)]
+    framed[0, 0] = framed[0, -1] = framed[-1, 0] = framed[-1, -1] = 0.0
+    return framed
+
+
+def _sample_with_gradient(
+    framed: np.ndarray, x: np.ndarray, y: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(values, d/dx, d/dy), each as ``x``: the image inside :func:`_extrapolated`'s frame
+    ``framed`` and its ``np.gradient`` (central differences, one-sided at the edges), bilinearly
+    interpolated at x, y (within [0, W-1] x [0, H-1]). Twelve whole pixels per point, read
+    from the flat image: the gradient's bilinear sample is the bilinear weights times the
+    central differences at the four pixels around the point."""
+    height, width = framed.shape[0] - 2, framed.shape[1] - 2
+    x0 = np.minimum(x.astype(np.int32), width - 2)  # x >= 0: truncation is the floor
+    y0 = np.minimum(y.astype(np.int32), height - 2)
+    fx, fy = x - x0, y - y0
+    w11 = fx * fy
+    w01, w10 = fx - w11, fy - w11
+    w00 = 1 - fx - w10
+    stride = width + 2
+    index = y0 * stride + x0  # of the pixel (x0 - 1, y0 - 1), the frame's (x0, y0)
+    flat = framed.ravel()
+
+    def at(shift):  # the pixel ``shift`` flat steps from (x0, y0), read from a shifted view
+        return flat[stride + 1 + shift :].take(index)
+
+    v00, v01, v10, v11 = at(0), at(1), at(stride), at(stride + 1)
+    value = w00 * v00 + w01 * v01 + w10 * v10 + w11 * v11
+    dx = w00 * (v01 - at(-1)) + w01 * (at(2) - v00)
+    dx += w10 * (v11 - at(stride - 1)) + w11 * (at(stride + 2) - v10)
+    dy = w00 * (v10 - at(-stride)) + w01 * (v11 - at(1 - stride))
+    dy += w10 * (at(2 * stride) - v00) + w11 * (at(2 * stride + 1) - v01)
+    dx *= 0.5
+    dy *= 0.5
+    return value, dx, dy
+
+
 def affine_polish(
     grey1: np.ndarray,
     grey2: np.ndarray,
@@ -130,39 +209,57 @@ def affine_polish(
     points2: np.ndarray,
     radius: int,
     steps: int,
+    template: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """(points float64 [K, 2], ok bool [K]): ``points2`` [K, 2] moved by ``steps`` Gauss-Newton
     steps of an affine Lucas-Kanade fit of image 1's template around ``points1`` [K, 2] (module
-    docstring), grey images float64. Each step moves a point by at most half a pixel and its
-    linear map by at most 0.1 per entry; ok is False where a warped window left image 2 or a
-    result is not finite."""
-    gy, gx = np.gradient(grey2)
-    grid = np.arange(-radius, radius + 1, dtype=np.float64)
-    ox, oy = np.meshgrid(grid, grid)  # [side, side], x along the row
-    template = _bilinear(grey1, points1[:, 0, None, None] + ox, points1[:, 1, None, None] + oy)
-    template -= template.mean(axis=(1, 2), keepdims=True)
-    energy = np.maximum(np.einsum("mij,mij->m", template, template), 1e-12)
-    points = np.array(points2, np.float64)
-    linear = np.tile(np.eye(2), (len(points), 1, 1))
+    docstring). Each step moves a point by at most half a pixel and its linear map by at most
+    0.1 per entry; ok is False where a warped window left image 2 or a result is not finite.
+    ``template``: :func:`templates` of ``points1``, when the caller has it already.
+
+    Image 2 and its gradient are read only where the warped windows fall (twelve whole pixels
+    per sample, :func:`_sample_with_gradient`), in float32; the 6 x 6 systems are solved in
+    float64."""
+    if template is None:
+        template = templates(np.asarray(grey1, np.float32), points1, radius)
+    count, side = len(points2), 2 * radius + 1
+    template = template.reshape(count, side * side)
+    energy = np.maximum(np.einsum("mp,mp->m", template, template, dtype=np.float64), 1e-12)
+    grid = np.arange(-radius, radius + 1, dtype=np.float32)
+    ox, oy = (o.ravel() for o in np.meshgrid(grid, grid))  # [side^2], x along the row
+    framed = _extrapolated(np.asarray(grey2, np.float32))
     height, width = grey2.shape
-    ok = np.ones(len(points), bool)
+    points = np.array(points2, np.float64)
+    linear = np.tile(np.eye(2), (count, 1, 1))
+    ok = np.ones(count, bool)
+    damping = 1e-6 * np.eye(6)
+    columns = np.empty((count, 6, side * side), np.float32)
     for _ in range(steps):
-        x = points[:, 0, None, None] + linear[:, 0, 0, None, None] * ox
-        x = x + linear[:, 0, 1, None, None] * oy
-        y = points[:, 1, None, None] + linear[:, 1, 0, None, None] * ox
-        y = y + linear[:, 1, 1, None, None] * oy
-        ok &= (x.min(axis=(1, 2)) >= 0) & (x.max(axis=(1, 2)) <= width - 1)
-        ok &= (y.min(axis=(1, 2)) >= 0) & (y.max(axis=(1, 2)) <= height - 1)
-        x, y = np.clip(x, 0, width - 1), np.clip(y, 0, height - 1)
-        window = _bilinear(grey2, x, y)
-        window -= window.mean(axis=(1, 2), keepdims=True)
-        ax, ay = _bilinear(gx, x, y), _bilinear(gy, x, y)
-        columns = np.stack([ax, ay, ax * ox, ax * oy, ay * ox, ay * oy], axis=-1)
-        columns = (columns - columns.mean(axis=(1, 2), keepdims=True)).reshape(len(points), -1, 6)
-        gain = np.einsum("mij,mij->m", window, template) / energy
-        residual = (gain[:, None, None] * template - window).reshape(len(points), -1)
-        normal = np.einsum("mpi,mpj->mij", columns, columns) + 1e-6 * np.eye(6)
-        step = np.linalg.solve(normal, np.einsum("mpi,mp->mi", columns, residual)[..., None])
+        px, py = points[:, 0, None].astype(np.float32), points[:, 1, None].astype(np.float32)
+        a = linear.astype(np.float32)
+        x = px + a[:, 0, 0, None] * ox + a[:, 0, 1, None] * oy
+        y = py + a[:, 1, 0, None] * ox + a[:, 1, 1, None] * oy
+        # The window's extremes lie at the grid's corners.
+        reach = radius * np.abs(a).sum(axis=2)  # [K, 2]: x and y
+        ok &= (px[:, 0] - reach[:, 0] >= 0) & (px[:, 0] + reach[:, 0] <= width - 1)
+        ok &= (py[:, 0] - reach[:, 1] >= 0) & (py[:, 0] + reach[:, 1] <= height - 1)
+        np.clip(x, 0, width - 1, out=x)
+        np.clip(y, 0, height - 1, out=y)
+        window, ax, ay = _sample_with_gradient(framed, x, y)
+        window -= window.mean(axis=1, keepdims=True)
+        columns[:, 0], columns[:, 1] = ax, ay  # [K, 6, P]: the warp's Jacobian, per pixel
+        np.multiply(ax, ox, out=columns[:, 2])
+        np.multiply(ax, oy, out=columns[:, 3])
+        np.multiply(ay, ox, out=columns[:, 4])
+        np.multiply(ay, oy, out=columns[:, 5])
+        columns -= columns.mean(axis=2, keepdims=True)
+        gain = (np.einsum("mp,mp->m", window, template, dtype=np.float64) / energy).astype(
+            np.float32
+        )
+        residual = gain[:, None] * template - window
+        normal = np.matmul(columns, columns.transpose(0, 2, 1), dtype=np.float32)
+        rhs = np.matmul(columns, residual[:, :, None])
+        step = np.linalg.solve(normal.astype(np.float64) + damping, rhs.astype(np.float64))
         step = np.nan_to_num(step[..., 0], nan=0.0, posinf=0.0, neginf=0.0)
         points += np.clip(step[:, :2], -0.5, 0.5)
         linear += np.clip(step[:, 2:], -0.1, 0.1).reshape(-1, 2, 2)
@@ -192,8 +289,8 @@ def refine_matches(
     Returns (points2_refined float32 [M, 2], moved bool [M]); rows not moved hold points2 as
     given.
     """
-    grey1 = np.asarray(grey1, np.float64)
-    grey2 = np.asarray(grey2, np.float64)
+    grey1 = np.asarray(grey1, np.float32)
+    grey2 = np.asarray(grey2, np.float32)
     points1 = np.asarray(points1, np.float64).reshape(-1, 2)
     points2 = np.asarray(points2, np.float64).reshape(-1, 2)
     if grey1.ndim != 2 or grey2.ndim != 2 or len(points1) != len(points2):
@@ -215,8 +312,9 @@ def refine_matches(
     index = np.flatnonzero(usable)
     if index.size == 0:
         return refined.astype(np.float32), moved
+    template = templates(grey1, points1[index], radius)
     ncc, spread = ncc_scores(
-        grey1, grey2, points1[index], centres[index].astype(np.int64), radius, search
+        grey1, grey2, points1[index], centres[index].astype(np.int64), radius, search, template
     )
     width = 2 * search + 1
     best = ncc.reshape(len(index), -1).argmax(axis=1)
@@ -232,7 +330,7 @@ def refine_matches(
     peaks = centres[index[accept]] + whole[accept] + offset[accept]
     if affine_steps > 0 and len(peaks):
         polished, ok = affine_polish(
-            grey1, grey2, points1[index[accept]], peaks, radius, affine_steps
+            grey1, grey2, points1[index[accept]], peaks, radius, affine_steps, template[accept]
         )
         ok &= np.linalg.norm(polished - peaks, axis=1) <= 1.0
         peaks[ok] = polished[ok]

@@ -42,15 +42,21 @@ from usp_jax.inference.matching import (
 #: and the radius that spreads points for a better-conditioned estimate (RESULTS.md).
 TOP_N = 1000
 NMS_RADIUS = 4.0
-#: The video default: the distilled fast network on a copy of each frame at most 640 px long
-#: (points in the frame's pixels; a 640x480 frame as it is), chosen by relative pose accuracy at
-#: SIFT's time budget on rendered rooms (benchmarks/bench_pose.py, RESULTS.md "Pose accuracy"):
-#: on 72 design pairs its AUC@10 is 0.108 above the same network at 480 px (95% interval +0.014
-#: to +0.192) at 0.87-0.97x SIFT's time per image; SIFT's AUC stays above it. ``paper`` at full
-#: size takes ~6x SIFT's time, too slow for a live camera. Without the sub-pixel refinement: on
-#: video it adds time and no inliers, and on the rooms it takes the network past SIFT's time.
+#: The video default: the distilled fast network on a copy of each frame at most 480 px long
+#: (points in the frame's pixels), its matches to the previous frame refined
+#: (``match_refinement.refine_matches``: NCC peak, then ``AFFINE_STEPS`` affine Lucas-Kanade
+#: steps), chosen by relative pose accuracy at SIFT's time budget (benchmarks/bench_pose.py,
+#: RESULTS.md "Pose"). On 48 design pairs of rendered rooms 480 px with 2 steps (AUC@10 0.594)
+#: is as accurate as the best candidate within SIFT's time there (560 px, 5 steps: 0.612, at
+#: 0.99x SIFT's time) at 0.68x; on real footage (box.mp4, ~900 matches per frame, where the
+#: refinement costs more) it is the one of the two within SIFT's time (0.96x against 1.20x).
+#: The old default, 640 px unrefined: 0.435. ``paper`` at full size takes ~6x SIFT's time, too
+#: slow for a live camera. The network's own sub-pixel refinement stays off: on video it adds
+#: time and no inliers.
 VIDEO_WEIGHTS = "distilled"
-VIDEO_SIDE = 640
+VIDEO_SIDE = 480
+#: Gauss-Newton steps of the affine polish after the NCC peak in the default match refinement.
+AFFINE_STEPS = 2
 #: RANSAC confidence of the fundamental matrix (OpenCV's default, 0.99, stops too early for
 #: hundreds of matches with many outliers).
 CONFIDENCE = 0.999
@@ -67,20 +73,26 @@ class TrackingConfig:
     the epipolar line, or of the homography's reprojection). ``keyframe_ratio``: the keyframe
     rule's fraction (module docstring). ``every``: track every N-th input frame.
     ``refine_matches``: before verification, move each match's point in the later frame to the
-    sub-pixel NCC peak of a grey patch around its point in the earlier one
-    (``match_refinement.refine_matches``, its defaults); the verified geometry uses the moved
-    points, the frames' points stay as detected. Off by default."""
+    sub-pixel NCC peak of a grey patch around its point in the earlier one, polished by
+    ``affine_steps`` affine Lucas-Kanade steps (``match_refinement.refine_matches``, its
+    other defaults); the verified geometry uses the moved points, the frames' points stay as
+    detected. Only the matches to the previous frame are refined: those to the keyframe are
+    verified as matched (refining them too cost a second refinement per frame and changed
+    nothing measurable on box.mp4, RESULTS.md "Video"). On by default."""
 
     planar: bool = False
     keyframe_ratio: float = 0.5
     every: int = 1
-    refine_matches: bool = False
+    refine_matches: bool = True
+    affine_steps: int = AFFINE_STEPS
 
     def __post_init__(self):
         if not 0 <= self.keyframe_ratio <= 1:
             raise ValueError(f"keyframe_ratio must be in [0, 1], got {self.keyframe_ratio}")
         if not isinstance(self.every, int) or self.every < 1:
             raise ValueError(f"every must be a positive integer, got {self.every!r}")
+        if not isinstance(self.affine_steps, int) or self.affine_steps < 0:
+            raise ValueError(f"affine_steps must be a whole number >= 0, got {self.affine_steps!r}")
 
 
 class TrackedFrame(NamedTuple):
@@ -144,11 +156,12 @@ def match_frames(
     """Mutual nearest neighbours of two frames' descriptors (``matching.nearest_neighbours``)
     and :func:`verify`: (int64 ``[K, 2]`` matches, bool ``[K]`` inliers). With
     ``config.refine_matches`` and the frames' grey images ``greys`` (float32 ``[H, W]`` each),
-    the matched points of frame 2 are refined (``match_refinement``) before verification."""
+    the matched points of frame 2 are refined (``match_refinement``, ``config.affine_steps``)
+    before verification."""
     matches = nearest_neighbours(features1.descriptors, features2.descriptors, norm, True)
     points1, points2 = matched_points(features1, features2, matches)
     if config.refine_matches and greys is not None:
-        points2 = refine_matches(*greys, points1, points2)[0]
+        points2 = refine_matches(*greys, points1, points2, affine_steps=config.affine_steps)[0]
     return matches, verify(points1, points2, config)
 
 
@@ -229,10 +242,9 @@ def track(
         separate = previous is not None and keyframe[0] != previous[0]
         if previous is not None:
             to_previous = match_frames(previous[1], features, norm, config, (previous[3], image))
+            # Unrefined (TrackingConfig): one refinement per frame.
             to_keyframe = (
-                match_frames(keyframe[1], features, norm, config, (keyframe[3], image))
-                if separate
-                else to_previous
+                match_frames(keyframe[1], features, norm, config) if separate else to_previous
             )
         ids, next_id = assign_track_ids(
             count,
