@@ -4,10 +4,16 @@ SIFT: ``pycolmap.extract_features`` -> ``match_exhaustive`` (photos) or ``match_
 (a video, ``--window`` frames overlap) -> ``incremental_mapping``, COLMAP's defaults.
 Ours (``usp_jax.sfm``, what ``usp-jax reconstruct`` runs): the network's keypoints, mutual
 nearest neighbours on the same pairs, COLMAP's geometric verification and the same mapper.
-Both share one SIMPLE_RADIAL camera (COLMAP's SINGLE camera mode).
+Both share one SIMPLE_RADIAL camera (COLMAP's SINGLE camera mode). ``--refine`` picks ours
+without (``off``), with (``on``) or both without and with (``both``, rows ``usp`` and
+``usp refined``, the default) the track-consistent keypoint refinement (``sfm.refine_keypoints``);
+both rows share one detection. ``--repeats K`` runs each of our rows K times on that detection
+(rows with ``repeat`` 0 to K - 1): COLMAP's RANSAC and mapper are random, and the rotation error
+of one run can differ several-fold from the next's.
 
 Reported per pipeline: registered images, 3-D points, mean track length, mean reprojection
-error, wall time per stage (ours after one warm-up detection; its compile time beside), and,
+error, wall time per stage (ours after one warm-up detection; its compile time beside; the
+refined row's ``refine`` stage and its counts of tracks and moved keypoints), and,
 where the true poses are known, the median relative-rotation and translation-direction errors
 over all pairs of registered images (``sfm.pose_errors``).
 
@@ -41,6 +47,7 @@ from usp_jax.inference.detector import Detector
 from usp_jax.inference.images import IMAGE_SUFFIXES, read_image
 
 RATIO = sfm.RATIO
+TRACK_THRESHOLD = sfm.TRACK_THRESHOLD
 
 
 def rendered_path(folder: pathlib.Path, photos: str, count: int, size, seed: int) -> dict:
@@ -97,18 +104,32 @@ def run_sift(images: pathlib.Path, names, work: pathlib.Path, window) -> tuple[l
     return _mapped(database, images, work, seconds), seconds
 
 
-def run_ours(images, names, work, window, detector) -> tuple[list, dict]:
-    seconds, database = {}, work / "database.db"
+def detect_ours(images, names, detector) -> tuple[list, float]:
+    """Our features of every image and the seconds they took (shared by both of our rows)."""
     start = time.perf_counter()
     features = sfm.detect_images(detector, (read_image(images / n) for n in names))
-    seconds["detect"] = time.perf_counter() - start
+    return features, time.perf_counter() - start
+
+
+def run_ours(images, names, work, window, detected, refine: bool) -> tuple[list, dict, dict]:
+    features, detect_s = detected
+    seconds, database, counts = {"detect": detect_s}, work / "database.db", {}
     start = time.perf_counter()
     pairs = sfm.image_pairs(len(names), window)
     matches = sfm.match_pairs(features, pairs, ratio=RATIO)
+    seconds["match"] = time.perf_counter() - start
+    if refine:
+        start = time.perf_counter()
+        greys = [sfm.grey_image(read_image(images / n)) for n in names]
+        features, counts = sfm.refine_keypoints(
+            greys, features, pairs, matches, threshold=TRACK_THRESHOLD
+        )
+        seconds["refine"] = time.perf_counter() - start
+    start = time.perf_counter()
     sfm.write_database(database, images, names, features, pairs, matches)
     sfm.verify(database)
-    seconds["match + verify"] = time.perf_counter() - start
-    return _mapped(database, images, work, seconds), seconds
+    seconds["verify"] = time.perf_counter() - start
+    return _mapped(database, images, work, seconds), seconds, counts
 
 
 def report(name, models, seconds, poses) -> dict:
@@ -141,14 +162,27 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--top", type=int, default=2000)
     p.add_argument("--max-side", type=int, default=1280)
     p.add_argument("--ratio", type=float, default=sfm.RATIO, help="ours: Lowe's ratio test")
+    p.add_argument(
+        "--refine",
+        choices=("off", "on", "both"),
+        default="both",
+        help="ours without, with, or without and with the track-consistent keypoint refinement",
+    )
+    p.add_argument(
+        "--track-threshold",
+        type=float,
+        default=sfm.TRACK_THRESHOLD,
+        help="refinement: tracks over the matches within this epipolar distance, px (0: all)",
+    )
+    p.add_argument("--repeats", type=int, default=1, help="runs of each of our rows")
     p.add_argument("--json", help="write the rows here")
     return p
 
 
 def main() -> None:
-    global RATIO
+    global RATIO, TRACK_THRESHOLD
     args = _parser().parse_args()
-    RATIO = args.ratio
+    RATIO, TRACK_THRESHOLD = args.ratio, (args.track_threshold or None)
     root = pathlib.Path(tempfile.mkdtemp(prefix="bench-sfm-"))
     images, poses = root / "images", None
     images.mkdir()
@@ -169,14 +203,20 @@ def main() -> None:
     )
     detector.detect(read_image(images / names[0]))  # compiles, outside the timed stages
     compile_s = time.perf_counter() - start
-    rows = []
-    for name, pipeline in (("sift", run_sift), ("usp", run_ours)):
-        work = root / name
-        work.mkdir()
-        extra = (detector,) if name == "usp" else ()
-        models, seconds = pipeline(images, names, work, args.window, *extra)
-        rows.append(report(name, models, seconds, poses))
-    rows[1]["compile_s"] = compile_s
+    work = root / "sift"
+    work.mkdir()
+    rows = [report("sift", *run_sift(images, names, work, args.window), poses)]
+    detected = detect_ours(images, names, detector)
+    variants = {"off": [False], "on": [True], "both": [False, True]}[args.refine]
+    for repeat in range(args.repeats):
+        for refine in variants:
+            work = root / f"usp{'-refined' if refine else ''}-{repeat}"
+            work.mkdir()
+            models, seconds, counts = run_ours(images, names, work, args.window, detected, refine)
+            rows.append(report("usp refined" if refine else "usp", models, seconds, poses))
+            rows[-1].update({"repeat": repeat, **({"refinement": counts} if refine else {})})
+    for row in rows[1:]:
+        row["compile_s"] = compile_s
     document = {
         "source": f"scene {args.scene} seed {args.seed}" if args.scene else args.images,
         "images": len(names),

@@ -168,3 +168,28 @@ def test_the_database_holds_what_the_detector_and_matcher_produced(rendered):
             matches = db.read_matches(ids[names[i]], ids[names[j]])
             np.testing.assert_array_equal(matches, expected)
         assert db.num_matches() == json.loads((out / "summary.json").read_text())["matches"]
+
+
+def test_refine_keypoints_writes_the_refined_keypoints_to_the_database_and_counts_them(
+    small_weights, tmp_path, capsys
+):
+    import pycolmap
+
+    # Shifted copies of one smooth texture: the random network's matches join some keypoints
+    # into tracks, whatever registers.
+    texture = cv2.GaussianBlur(_noise(0, (96, 128)), (0, 0), 1.5)
+    views = {f"{i}.png": np.roll(texture, (2 * i, 3 * i), axis=(0, 1)) for i in range(3)}
+    folder = _write(tmp_path / "images", views)
+    out = tmp_path / "out"
+    main([*_argv(folder, out, small_weights), "--refine-keypoints", "--export-features"])
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["refine_keypoints"] is True and "refine" in summary["seconds"]
+    counts = summary["refinement"]
+    assert counts["tracks"] >= counts["consistent_tracks"] > 0
+    assert counts["observations"] >= counts["moved"]
+    exported = np.load(out / "features.npz")
+    with pycolmap.Database.open(str(out / "database.db")) as db:
+        for image in db.read_all_images():
+            np.testing.assert_array_equal(
+                db.read_keypoints(image.image_id)[:, :2], exported[f"{image.name}/keypoints"]
+            )

@@ -108,3 +108,114 @@ def test_database_holds_the_keypoints_in_colmaps_convention_and_the_matches(tmp_
         for (i, j), pair_matches in zip(pairs, matches):
             np.testing.assert_array_equal(db.read_matches(ids[i], ids[j]), pair_matches)
         assert db.num_matches() == sum(len(m) for m in matches)
+
+
+def test_tracks_are_the_connected_components_of_the_matches_and_flag_repeated_images():
+    # Image 2 holds 4 keypoints; keypoint 2 of image 1 is matched to nothing.
+    pairs = np.array([[0, 1], [0, 2], [1, 2]])
+    matches = [np.array([[0, 0], [1, 1]]), np.array([[2, 2], [2, 3]]), np.array([[0, 0], [1, 1]])]
+    nodes, track, consistent = sfm.keypoint_tracks([3, 3, 4], pairs, matches)
+    components = {tuple(sorted(map(tuple, nodes[track == t]))) for t in range(track.max() + 1)}
+    assert components == {
+        ((0, 0), (1, 0), (2, 0)),
+        ((0, 1), (1, 1), (2, 1)),
+        ((0, 2), (2, 2), (2, 3)),  # two keypoints of image 2: inconsistent
+    }
+    by_track = {tuple(sorted(map(tuple, nodes[track == t]))): consistent[t] for t in range(3)}
+    assert by_track[((0, 2), (2, 2), (2, 3))] == False  # noqa: E712 (numpy bool)
+    assert sum(by_track.values()) == 2
+    nodes, track, consistent = sfm.keypoint_tracks([2, 2], np.array([[0, 1]]), [np.zeros((0, 2))])
+    assert nodes.shape == (0, 2) and track.shape == (0,) and consistent.shape == (0,)
+
+
+def test_an_anchor_is_the_node_with_most_matches_then_the_highest_score():
+    track = np.array([0, 0, 0, 1, 1])
+    degree = np.array([1, 2, 2, 1, 1])
+    scores = np.array([0.9, 0.1, 0.5, 0.2, 0.3])
+    np.testing.assert_array_equal(sfm.track_anchors(track, degree, scores), [2, 4])
+
+
+def test_track_matches_keep_the_matches_a_fundamental_matrix_explains():
+    rng = np.random.default_rng(0)
+    world = rng.uniform([-2, -2, 4], [2, 2, 8], (80, 3))
+    K = np.array([[300.0, 0, 160], [0, 300, 120], [0, 0, 1]])
+    turn = Rotation.from_euler("y", 8, degrees=True).as_matrix()
+    views = [world @ K.T, (world @ turn.T + [0.5, 0.1, 0.0]) @ K.T]
+    keypoints = [(v[:, :2] / v[:, 2:]).astype(np.float32) for v in views]
+    features = [Features(k, np.ones(80, np.float32), np.zeros((80, 4))) for k in keypoints]
+    right = np.stack([np.arange(60)] * 2, axis=1)
+    wrong = np.stack([np.arange(60, 80), rng.permutation(np.arange(60, 80))], axis=1)
+    matches = [np.concatenate([right, wrong])]
+    kept = sfm.track_matches(features, np.array([[0, 1]]), matches)[0]
+    kept, right_set = set(map(tuple, kept)), set(map(tuple, right))
+    # A wrong match lying near its epipolar line by chance passes: no two-view test sees it.
+    assert len(kept & right_set) >= 58 and len(kept - right_set) <= 2
+    np.testing.assert_array_equal(
+        sfm.track_matches(features, [[0, 1]], matches, None)[0], matches[0]
+    )
+    assert sfm.track_matches(features, [[0, 1]], [right[:7]])[0].shape == (0, 2)
+
+
+def _shifted_views(shifts, size=(96, 128), seed=0):
+    """Grey views [H, W] float32 of one smooth texture, view k shifted by shifts[k] (x, y): a
+    point at p in view 0 lies at p + shifts[k] in view k."""
+    rng = np.random.default_rng(seed)
+    texture = cv2.GaussianBlur(rng.uniform(0, 255, size).astype(np.float32), (0, 0), 1.5)
+    return [
+        cv2.warpAffine(
+            texture,
+            np.float32([[1, 0, dx], [0, 1, dy]]),
+            size[::-1],
+            flags=cv2.INTER_CUBIC,
+            borderMode=cv2.BORDER_REFLECT,
+        )
+        for dx, dy in shifts
+    ]
+
+
+def test_refinement_moves_keypoints_to_the_anchors_correspondence_and_the_database_holds_them(
+    tmp_path,
+):
+    shifts = np.array([[0.0, 0.0], [1.3, -0.6], [-0.45, 2.2]])
+    greys = _shifted_views(shifts)
+    rng = np.random.default_rng(1)
+    truth0 = rng.uniform(20, 76, (40, 2))  # (x, y) in view 0, away from the borders
+    truth = [truth0 + shift for shift in shifts]
+    angle = rng.uniform(0, 2 * np.pi, (3, 40))
+    jitter = 0.7 * np.stack([np.cos(angle), np.sin(angle)], axis=-1)
+    jitter[0] = 0  # view 0's points are exact and score highest: they anchor every track
+    features = [
+        Features((t + j).astype(np.float32), np.full(40, 1.0 - k / 10, np.float32), np.zeros(40))
+        for k, (t, j) in enumerate(zip(truth, jitter))
+    ]
+    # A 41st keypoint of view 2 also matched to view 0's point 0: that track is left alone.
+    features[2] = Features(
+        np.concatenate([features[2].keypoints, [[50.0, 50.0]]]).astype(np.float32),
+        np.append(features[2].scores, 0.1),
+        np.zeros(41),
+    )
+    pairs = sfm.image_pairs(3)
+    same = np.stack([np.arange(40)] * 2, axis=1)
+    matches = [same, np.concatenate([same, [[0, 40]]]), same]
+    # threshold None: tracks over every match (a shift is no fundamental matrix's test)
+    refined, counts = sfm.refine_keypoints(greys, features, pairs, matches, threshold=None)
+    assert counts["tracks"] == 40 and counts["consistent_tracks"] == 39
+    assert counts["observations"] == 78 and counts["moved"] >= 70
+    np.testing.assert_array_equal(refined[0].keypoints, features[0].keypoints)  # anchors stay
+    for view in (1, 2):
+        before = np.linalg.norm(features[view].keypoints[1:40] - truth[view][1:], axis=1)
+        after = np.linalg.norm(refined[view].keypoints[1:40] - truth[view][1:], axis=1)
+        assert np.median(before) > 0.6 and np.median(after) < 0.08 and after.max() < 0.15
+        np.testing.assert_array_equal(refined[view].keypoints[0], features[view].keypoints[0])
+    np.testing.assert_array_equal(refined[2].keypoints[40], [50.0, 50.0])
+    images = tmp_path / "images"
+    images.mkdir()
+    names = [f"{k}.png" for k in range(3)]
+    for name, grey in zip(names, greys):
+        cv2.imwrite(str(images / name), grey.astype(np.uint8))
+    ids = sfm.write_database(tmp_path / "db.db", images, names, refined, pairs, matches)
+    with pycolmap.Database.open(str(tmp_path / "db.db")) as db:
+        for image_id, found in zip(ids, refined):
+            np.testing.assert_allclose(db.read_keypoints(image_id)[:, :2], found.keypoints + 0.5)
+        for (i, j), pair_matches in zip(pairs, matches):
+            np.testing.assert_array_equal(db.read_matches(ids[i], ids[j]), pair_matches)
