@@ -402,14 +402,19 @@ def test_ctrl_c_inside_a_step_is_raised_after_the_step_has_returned_its_state():
     from usp_jax.training.interrupts import interrupts_deferred
 
     finished = []
-    with pytest.raises(KeyboardInterrupt):
-        with interrupts_deferred():
-            os.kill(os.getpid(), signal.SIGINT)
-            for _ in range(1000):  # the handler runs between bytecodes, here at the latest
-                pass
-            finished.append(True)  # the assignment the interrupt must not cut short
+    # Python's own Ctrl-C handler, whatever the suite inherited (a background job's SIG_IGN).
+    inherited = signal.signal(signal.SIGINT, signal.default_int_handler)
+    try:
+        with pytest.raises(KeyboardInterrupt):
+            with interrupts_deferred():
+                os.kill(os.getpid(), signal.SIGINT)
+                for _ in range(1000):  # the handler runs between bytecodes, here at the latest
+                    pass
+                finished.append(True)  # the assignment the interrupt must not cut short
+        assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
+    finally:
+        signal.signal(signal.SIGINT, inherited)
     assert finished == [True]
-    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
 
 
 def test_without_ctrl_c_the_deferred_block_raises_nothing():

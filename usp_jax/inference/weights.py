@@ -40,6 +40,9 @@ PRETRAINED = {
     "fast": "fast.npz",
     "rotation": "rotation.npz",
     "distilled": "distilled.npz",
+    # ``paper`` fine-tuned on two views of rendered 3-D rooms (experiments/parallax_pairs.py):
+    # more matches across parallax (leuven, aloe), the same elsewhere (RESULTS.md, real pairs).
+    "parallax": "parallax.npz",
 }
 #: What ``Detector.pretrained()`` loads: the best of the named weights on the held-out pairs.
 DEFAULT_PRETRAINED = "paper"
