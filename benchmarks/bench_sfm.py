@@ -44,7 +44,7 @@ import pycolmap
 
 from usp_jax import sfm
 from usp_jax.inference.detector import Detector
-from usp_jax.inference.images import IMAGE_SUFFIXES, read_image
+from usp_jax.inference.images import IMAGE_SUFFIXES, grey, read_image
 
 RATIO = sfm.RATIO
 TRACK_THRESHOLD = sfm.TRACK_THRESHOLD
@@ -120,7 +120,7 @@ def run_ours(images, names, work, window, detected, refine: bool) -> tuple[list,
     seconds["match"] = time.perf_counter() - start
     if refine:
         start = time.perf_counter()
-        greys = [sfm.grey_image(read_image(images / n)) for n in names]
+        greys = [grey(read_image(images / n)) for n in names]
         features, counts = sfm.refine_keypoints(
             greys, features, pairs, matches, threshold=TRACK_THRESHOLD
         )

@@ -13,6 +13,7 @@ from usp_jax.cli import main
 from usp_jax.inference import tracking
 from usp_jax.inference.detector import Detector
 from usp_jax.inference.features import Features
+from usp_jax.inference.images import grey
 from usp_jax.inference.methods import opencv_method
 
 SIZE = (96, 128)  # (height, width) of the test frames
@@ -123,7 +124,7 @@ def test_refined_matches_reach_verification_only_when_asked(frames, monkeypatch,
 
     monkeypatch.setattr(tracking, "verify", verify)
     config = tracking.TrackingConfig(refine_matches=refine)
-    greys = tuple(tracking.grey(frame) for frame in frames[:2])
+    greys = tuple(grey(frame).astype(np.float32) for frame in frames[:2])
     matches, _ = tracking.match_frames(*features, cv2.NORM_L2, config, greys)
     error = np.linalg.norm(seen["p2"] - truth[matches[:, 1]], axis=1)
     if refine:  # closer; the turn of 3 degrees and the frames' resampling bias plain NCC

@@ -115,15 +115,6 @@ def match_pairs(
     ]
 
 
-def grey_image(image: np.ndarray) -> np.ndarray:
-    """uint8 ``[H, W]`` grey levels of a uint8 RGB ``[H, W, 3]`` (or grey ``[H, W]``) image: what
-    :func:`refine_keypoints` correlates (uint8 keeps a video's frames small in memory)."""
-    import cv2
-
-    image = np.asarray(image)
-    return cv2.cvtColor(image, cv2.COLOR_RGB2GRAY) if image.ndim == 3 else image
-
-
 def _match_edges(counts: Sequence[int], pairs: np.ndarray, matches: Sequence[np.ndarray]):
     """(offsets int ``[I + 1]``, edges int ``[E, 2]``): node ``offsets[i] + k`` is keypoint k of
     image i (``counts`` ``[I]`` keypoints per image); each match of ``pairs`` ``[P, 2]`` joins
@@ -229,7 +220,7 @@ def refine_keypoints(
     """Track-consistent refinement (module docstring): each consistent track's observations
     moved to the NCC peak (and affine polish) of its anchor's grey patch, the anchor fixed.
 
-    greys: each image's grey ``[H, W]`` (:func:`grey_image`; any sequence that indexes, e.g. one
+    greys: each image's grey ``[H, W]`` (uint8, ``inference.images.grey``, keeps a video's frames small; any sequence that indexes, e.g. one
     reading from disk); features: each image's detections; pairs: int ``[P, 2]``; matches: per
     pair int ``[K, 2]`` (:func:`match_pairs`); threshold: :func:`track_matches`' (None: tracks
     over every match); ``progress`` wraps the loop over image pairs.

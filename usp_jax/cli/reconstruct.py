@@ -34,7 +34,7 @@ from functools import lru_cache
 
 from usp_jax import sfm
 from usp_jax.cli import arguments
-from usp_jax.inference.images import IMAGE_SUFFIXES, read_image
+from usp_jax.inference.images import IMAGE_SUFFIXES, grey, read_image
 
 log = logging.getLogger(__name__)
 
@@ -164,7 +164,7 @@ class _Greys:
         self.read = lru_cache(maxsize=16)(self._read)
 
     def _read(self, index: int):
-        return sfm.grey_image(read_image(self.folder / self.names[index]))
+        return grey(read_image(self.folder / self.names[index]))
 
     def __getitem__(self, index: int):
         return self.read(int(index))

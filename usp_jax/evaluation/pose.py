@@ -30,7 +30,7 @@ from typing import NamedTuple
 import cv2
 import numpy as np
 
-from usp_jax.inference.images import read_image
+from usp_jax.inference.images import grey, read_image
 from usp_jax.inference.match_refinement import refine_matches
 from usp_jax.inference.matching import nearest_neighbours
 
@@ -178,14 +178,6 @@ def pose_auc(errors: Sequence[float], thresholds: Sequence[float] = THRESHOLDS) 
         at = np.r_[errors[:last], threshold]
         aucs.append(float(np.trapezoid(curve, at) / threshold))
     return aucs
-
-
-def grey(image: np.ndarray) -> np.ndarray:
-    """float32 ``[H, W]`` grey levels of a uint8 RGB ``[H, W, 3]`` (or grey ``[H, W]``) image."""
-    image = np.asarray(image)
-    return (cv2.cvtColor(image, cv2.COLOR_RGB2GRAY) if image.ndim == 3 else image).astype(
-        np.float32
-    )
 
 
 def pair_row(

@@ -64,6 +64,13 @@ def decode_image(data: bytes, name: str = "image") -> np.ndarray:
     return cv2.cvtColor(image, cv2.COLOR_BGR2RGB)
 
 
+def grey(image: np.ndarray) -> np.ndarray:
+    """uint8 ``[H, W]`` grey levels (``cv2.COLOR_RGB2GRAY``'s BT.601 luma) of a uint8 RGB
+    ``[H, W, 3]`` image; a grey ``[H, W]`` one as it is."""
+    image = np.asarray(image)
+    return cv2.cvtColor(image, cv2.COLOR_RGB2GRAY) if image.ndim == 3 else image
+
+
 def read_image(path: str | pathlib.Path) -> np.ndarray:
     """The image file at ``path`` as uint8 [H, W, 3] RGB (see ``decode_image``)."""
     return decode_image(pathlib.Path(path).read_bytes(), str(path))

@@ -53,6 +53,7 @@ import numpy as np
 from usp_jax.inference import turning
 from usp_jax.inference.detector import Detector
 from usp_jax.inference.features import Features
+from usp_jax.inference.images import grey
 
 
 @dataclasses.dataclass(frozen=True)
@@ -146,8 +147,7 @@ def opencv_method(name: str, num_points: int) -> Method:
     dtype = np.float32 if norm == cv2.NORM_L2 else np.uint8
 
     def detect(image: np.ndarray) -> Features:
-        gray = cv2.cvtColor(image, cv2.COLOR_RGB2GRAY) if image.ndim == 3 else image
-        keypoints, descriptors = detector.detectAndCompute(gray, None)
+        keypoints, descriptors = detector.detectAndCompute(grey(image), None)
         if descriptors is None:  # OpenCV returns None rather than an empty array
             descriptors = np.zeros((0, length), dtype)
         scores = np.array([kp.response for kp in keypoints], dtype=np.float32)

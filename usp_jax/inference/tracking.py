@@ -29,6 +29,7 @@ import numpy as np
 
 from usp_jax.inference.detector import Detector
 from usp_jax.inference.features import Features
+from usp_jax.inference.images import grey
 from usp_jax.inference.match_refinement import refine_matches
 from usp_jax.inference.matching import (
     RANSAC_MAX_ITERS,
@@ -165,13 +166,6 @@ def match_frames(
     return matches, verify(points1, points2, config)
 
 
-def grey(frame: np.ndarray) -> np.ndarray:
-    """float32 ``[H, W]`` grey levels of a uint8 RGB ``[H, W, 3]`` (or grey) frame."""
-    return (cv2.cvtColor(frame, cv2.COLOR_RGB2GRAY) if frame.ndim == 3 else frame).astype(
-        np.float32
-    )
-
-
 def assign_track_ids(
     count: int,
     previous_ids: np.ndarray,
@@ -236,7 +230,8 @@ def track(
             )
         start = time.perf_counter()
         features = detector.detect(frame)
-        image = grey(frame) if config.refine_matches else None
+        # float32 once: the frame is refined against as image 2, then as image 1 of the next.
+        image = grey(frame).astype(np.float32) if config.refine_matches else None
         count = len(features.keypoints)
         to_previous = to_keyframe = no_matches
         separate = previous is not None and keyframe[0] != previous[0]
