@@ -4,16 +4,19 @@ SIFT: ``pycolmap.extract_features`` -> ``match_exhaustive`` (photos) or ``match_
 (a video, ``--window`` frames overlap) -> ``incremental_mapping``, COLMAP's defaults.
 Ours (``usp_jax.sfm``, what ``usp-jax reconstruct`` runs): the network's keypoints, mutual
 nearest neighbours on the same pairs, COLMAP's geometric verification and the same mapper.
-Both share one SIMPLE_RADIAL camera (COLMAP's SINGLE camera mode). ``--refine`` picks ours
-without (``off``), with (``on``) or both without and with (``both``, rows ``usp`` and
-``usp refined``, the default) the track-consistent keypoint refinement (``sfm.refine_keypoints``);
-both rows share one detection. ``--repeats K`` runs each of our rows K times on that detection
+Both share one SIMPLE_RADIAL camera (COLMAP's SINGLE camera mode). ``--pipelines`` picks which of
+ours run, each a row: ``raw`` gives COLMAP every mutual nearest neighbour; ``filtered`` the
+matches a 1 px fundamental matrix keeps (``sfm.fundamental_inliers``, ``--epipolar``); ``refined``
+those, with each track's keypoints moved onto its anchor's patch and only the matches of
+keypoints that settled so (``sfm.refine_keypoints``: reconstruct's default). All rows share one
+detection. ``--repeats K`` runs each of our rows K times on that detection
 (rows with ``repeat`` 0 to K - 1): COLMAP's RANSAC and mapper are random, and the rotation error
 of one run can differ several-fold from the next's.
 
 Reported per pipeline: registered images, 3-D points, mean track length, mean reprojection
 error, wall time per stage (ours after one warm-up detection; its compile time beside; the
-refined row's ``refine`` stage and its counts of tracks and moved keypoints), and,
+refined row's ``refine`` stage and its counts of tracks and moved keypoints), the shared
+camera's focal length, and,
 where the true poses are known, the median relative-rotation and translation-direction errors
 over all pairs of registered images (``sfm.pose_errors``).
 
@@ -47,7 +50,8 @@ from usp_jax.inference.detector import Detector
 from usp_jax.inference.images import IMAGE_SUFFIXES, grey, read_image
 
 RATIO = sfm.RATIO
-TRACK_THRESHOLD = sfm.TRACK_THRESHOLD
+EPIPOLAR = sfm.EPIPOLAR_THRESHOLD
+PIPELINES = ("raw", "filtered", "refined")
 
 
 def rendered_path(folder: pathlib.Path, photos: str, count: int, size, seed: int) -> dict:
@@ -111,19 +115,21 @@ def detect_ours(images, names, detector) -> tuple[list, float]:
     return features, time.perf_counter() - start
 
 
-def run_ours(images, names, work, window, detected, refine: bool) -> tuple[list, dict, dict]:
+def run_ours(images, names, work, window, detected, pipeline) -> tuple[list, dict, dict]:
     features, detect_s = detected
     seconds, database, counts = {"detect": detect_s}, work / "database.db", {}
     start = time.perf_counter()
     pairs = sfm.image_pairs(len(names), window)
     matches = sfm.match_pairs(features, pairs, ratio=RATIO)
     seconds["match"] = time.perf_counter() - start
-    if refine:
+    if pipeline != "raw":
+        start = time.perf_counter()
+        matches = sfm.fundamental_inliers(features, pairs, matches, EPIPOLAR)
+        seconds["filter"] = time.perf_counter() - start
+    if pipeline == "refined":
         start = time.perf_counter()
         greys = [grey(read_image(images / n)) for n in names]
-        features, counts = sfm.refine_keypoints(
-            greys, features, pairs, matches, threshold=TRACK_THRESHOLD
-        )
+        features, matches, counts = sfm.refine_keypoints(greys, features, pairs, matches)
         seconds["refine"] = time.perf_counter() - start
     start = time.perf_counter()
     sfm.write_database(database, images, names, features, pairs, matches)
@@ -137,6 +143,8 @@ def report(name, models, seconds, poses) -> dict:
     row["seconds"]["total"] = sum(seconds.values())
     if models:
         row.update(sfm.model_summary(models[0]))
+        # The shared camera's focal length: its error drives the rotation error on our paths.
+        row["focal_px"] = float(next(iter(models[0].cameras.values())).params[0])
         if poses:
             row.update(sfm.pose_errors(models[0], poses))
     return row
@@ -163,16 +171,19 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--max-side", type=int, default=1280)
     p.add_argument("--ratio", type=float, default=sfm.RATIO, help="ours: Lowe's ratio test")
     p.add_argument(
-        "--refine",
-        choices=("off", "on", "both"),
-        default="both",
-        help="ours without, with, or without and with the track-consistent keypoint refinement",
+        "--pipelines",
+        nargs="+",
+        choices=PIPELINES,
+        default=["raw", "refined"],
+        help="ours: every mutual nearest neighbour to COLMAP (raw), those a fundamental matrix"
+        " keeps (filtered), those with their keypoints refined along tracks (refined:"
+        " reconstruct's default)",
     )
     p.add_argument(
-        "--track-threshold",
+        "--epipolar",
         type=float,
-        default=sfm.TRACK_THRESHOLD,
-        help="refinement: tracks over the matches within this epipolar distance, px (0: all)",
+        default=sfm.EPIPOLAR_THRESHOLD,
+        help="filtered and refined: the fundamental matrix's threshold, px",
     )
     p.add_argument("--repeats", type=int, default=1, help="runs of each of our rows")
     p.add_argument("--json", help="write the rows here")
@@ -180,9 +191,9 @@ def _parser() -> argparse.ArgumentParser:
 
 
 def main() -> None:
-    global RATIO, TRACK_THRESHOLD
+    global RATIO, EPIPOLAR
     args = _parser().parse_args()
-    RATIO, TRACK_THRESHOLD = args.ratio, (args.track_threshold or None)
+    RATIO, EPIPOLAR = args.ratio, args.epipolar
     root = pathlib.Path(tempfile.mkdtemp(prefix="bench-sfm-"))
     images, poses = root / "images", None
     images.mkdir()
@@ -207,14 +218,13 @@ def main() -> None:
     work.mkdir()
     rows = [report("sift", *run_sift(images, names, work, args.window), poses)]
     detected = detect_ours(images, names, detector)
-    variants = {"off": [False], "on": [True], "both": [False, True]}[args.refine]
     for repeat in range(args.repeats):
-        for refine in variants:
-            work = root / f"usp{'-refined' if refine else ''}-{repeat}"
+        for pipeline in args.pipelines:
+            work = root / f"usp-{pipeline}-{repeat}"
             work.mkdir()
-            models, seconds, counts = run_ours(images, names, work, args.window, detected, refine)
-            rows.append(report("usp refined" if refine else "usp", models, seconds, poses))
-            rows[-1].update({"repeat": repeat, **({"refinement": counts} if refine else {})})
+            models, seconds, counts = run_ours(images, names, work, args.window, detected, pipeline)
+            rows.append(report(f"usp {pipeline}", models, seconds, poses))
+            rows[-1].update({"repeat": repeat, **({"refinement": counts} if counts else {})})
     for row in rows[1:]:
         row["compile_s"] = compile_s
     document = {

@@ -132,10 +132,10 @@ def test_a_rendered_path_reconstructs_with_its_true_relative_rotations(rendered)
     model = pycolmap.Reconstruction(str(out / "sparse" / "0"))  # COLMAP's own reader opens it
     assert model.num_reg_images() == VIEWS
     errors = sfm.pose_errors(model, poses)
-    # Measured 0.67 degrees (rotation) and 0.59 (translation direction); SIFT's error on
-    # rendered paths is ~0.1-0.3 degrees (experiments/results/sfm).
+    # Measured 0.08-0.35 degrees (rotation) and 0.44-0.80 (translation direction) over three
+    # runs; 0.67 and 0.59 before the epipolar filter and the keypoint refinement.
     assert errors["pairs"] == VIEWS * (VIEWS - 1) // 2
-    assert errors["median_rotation_error"] < 2.0
+    assert errors["median_rotation_error"] < 1.0
     assert errors["median_translation_error"] < 5.0
     summary = json.loads((out / "summary.json").read_text())
     assert summary["registered_images"] == VIEWS and summary["points"] == model.num_points3D()
@@ -157,17 +157,30 @@ def test_the_database_holds_what_the_detector_and_matcher_produced(rendered):
     detector = Detector.pretrained(WEIGHTS, top_n=TOP, max_side=MAX_SIDE, refine=True)
     names = [f"{index}.png" for index in range(VIEWS)]
     features = [detector.detect(read_image(images / name)) for name in names]
+    summary = json.loads((out / "summary.json").read_text())
+    exported = np.load(out / "features.npz")
+    differing = 0
     with pycolmap.Database.open(str(out / "database.db")) as db:
         ids = {image.name: image.image_id for image in db.read_all_images()}
         for name, found in zip(names, features):
-            np.testing.assert_allclose(
-                db.read_keypoints(ids[name])[:, :2], found.keypoints + 0.5, atol=1e-4
+            # The detector's keypoints, each moved at most the refinement's reach or not at all.
+            moved = np.linalg.norm(
+                db.read_keypoints(ids[name])[:, :2] - found.keypoints - 0.5, axis=1
             )
+            assert len(moved) == len(found.keypoints) and moved.max() < 5.0
+            differing += int((moved > 1e-3).sum())
         for i, j in [(0, 1), (2, 5)]:
             expected = mutual_nearest_neighbours(features[i].descriptors, features[j].descriptors)
+            pair = f"{names[i]}//{names[j]}"
+            np.testing.assert_array_equal(exported[f"{pair}/matches"], expected)
+            # COLMAP gets the mutual nearest neighbours that pass the epipolar filter and settle.
             matches = db.read_matches(ids[names[i]], ids[names[j]])
-            np.testing.assert_array_equal(matches, expected)
-        assert db.num_matches() == json.loads((out / "summary.json").read_text())["matches"]
+            np.testing.assert_array_equal(exported[f"{pair}/kept"], matches)
+            assert set(map(tuple, matches)) <= set(map(tuple, expected)) and len(matches) > 20
+        counts = summary["refinement"]
+        assert db.num_matches() == counts["settled_matches"] <= summary["epipolar_matches"]
+        assert summary["epipolar_matches"] == counts["matches"] <= summary["matches"]
+    assert 0 < differing <= counts["moved"]
 
 
 def test_refine_keypoints_writes_the_refined_keypoints_to_the_database_and_counts_them(
@@ -181,15 +194,16 @@ def test_refine_keypoints_writes_the_refined_keypoints_to_the_database_and_count
     views = {f"{i}.png": np.roll(texture, (2 * i, 3 * i), axis=(0, 1)) for i in range(3)}
     folder = _write(tmp_path / "images", views)
     out = tmp_path / "out"
-    main([*_argv(folder, out, small_weights), "--refine-keypoints", "--export-features"])
+    main([*_argv(folder, out, small_weights), "--export-features"])  # refinement is the default
     summary = json.loads((out / "summary.json").read_text())
     assert summary["refine_keypoints"] is True and "refine" in summary["seconds"]
     counts = summary["refinement"]
-    assert counts["tracks"] >= counts["consistent_tracks"] > 0
-    assert counts["observations"] >= counts["moved"]
+    assert counts["tracks"] > 0 and counts["observations"] >= counts["moved"]
+    assert counts["settled_matches"] <= counts["matches"] == summary["epipolar_matches"]
     exported = np.load(out / "features.npz")
     with pycolmap.Database.open(str(out / "database.db")) as db:
         for image in db.read_all_images():
             np.testing.assert_array_equal(
                 db.read_keypoints(image.image_id)[:, :2], exported[f"{image.name}/keypoints"]
             )
+        assert db.num_matches() == counts["settled_matches"]

@@ -3,8 +3,8 @@ incremental mapper and bundle adjustment through pycolmap (the optional ``sfm`` 
 keypoints and mutual-nearest-neighbour matches in place of COLMAP's SIFT.
 
 The steps, each a function (``usp-jax reconstruct`` runs them in order):
-:func:`detect_images` -> :func:`match_pairs` on :func:`image_pairs` -> optionally
-:func:`refine_keypoints` -> :func:`write_database` -> :func:`verify` -> :func:`map_images`, then :func:`model_summary` and, where true poses are
+:func:`detect_images` -> :func:`match_pairs` on :func:`image_pairs` ->
+:func:`fundamental_inliers` -> :func:`refine_keypoints` -> :func:`write_database` -> :func:`verify` -> :func:`map_images`, then :func:`model_summary` and, where true poses are
 known, :func:`pose_errors`. :func:`export_features` writes the features and raw matches for
 users who run COLMAP or hloc themselves.
 
@@ -12,15 +12,10 @@ It lives beside the CLI rather than in ``inference`` or ``evaluation``: it is an
 the detector with a heavy optional dependency that detection, training and evaluation must never
 load, and ``benchmarks/bench_sfm.py`` uses it together with the evaluation's scenes.
 
-Track-consistent keypoint refinement (:func:`refine_keypoints`, the simple form of
-pixel-perfect SfM's featuremetric keypoint adjustment): COLMAP keeps one position per keypoint,
-shared by all its matches, so matches cannot be refined one by one. The matches are joined into
-tracks (:func:`keypoint_tracks`: connected components of (image, keypoint) nodes, over the
-matches a fundamental matrix keeps, :func:`track_matches`); in each track
-that holds at most one keypoint per image, one anchor observation stays where it was detected and
-every other observation moves to where the anchor's grey patch correlates best in its image
-(``inference.match_refinement.refine_matches``, NCC peak and affine Lucas-Kanade polish). The
-database then gets the moved keypoints and the same matches.
+COLMAP gets only the matches a 1 px fundamental matrix keeps (:func:`fundamental_inliers`), with
+the keypoints of each track moved onto one anchor observation's patch, the simple form of
+pixel-perfect SfM's featuremetric keypoint adjustment (:func:`refine_keypoints`): COLMAP keeps
+one position per keypoint, shared by all its matches, so matches cannot be refined one by one.
 
 COLMAP puts the centre of the top-left pixel at (0.5, 0.5); ours sits at (0, 0)
 (``core.model``'s convention), so :func:`colmap_keypoints` is the one place that converts.
@@ -30,6 +25,7 @@ from __future__ import annotations
 
 import pathlib
 from collections.abc import Callable, Iterable, Sequence
+from typing import NamedTuple
 
 import numpy as np
 
@@ -49,11 +45,11 @@ WINDOW = 10
 #: :func:`refine_keypoints`' affine Lucas-Kanade steps after each NCC peak: the translation-only
 #: peak is biased by the view change (about 0.3 px on rendered rooms), the affine fit removes it.
 AFFINE_STEPS = 5
-#: :func:`track_matches`' epipolar distance, px. Raw mutual nearest neighbours (a quarter of them
-#: right on rendered rooms) join most keypoints into one component holding many keypoints of
-#: each image, which no anchor can serve: on a rendered 12-frame path (seed 0, ``distilled``)
-#: 1,980 of 19,259 matched keypoints lay in usable tracks, 7,407 of 8,748 after this filter.
-TRACK_THRESHOLD = 1.0
+#: :func:`fundamental_inliers`' epipolar distance, px (``reconstruct --epipolar``): the matches
+#: COLMAP gets and the tracks are built of. On a rendered 12-frame path (seed 1, ``distilled``)
+#: it took COLMAP's verification from 12-20 s to 0.5 s, and the keypoint refinement's usable
+#: tracks from a third of the matched keypoints to all (experiments/results/sfm/README.md).
+EPIPOLAR_THRESHOLD = 1.0
 
 
 def load_pycolmap():
@@ -127,16 +123,19 @@ def _match_edges(counts: Sequence[int], pairs: np.ndarray, matches: Sequence[np.
     return offsets, np.concatenate([np.zeros((0, 2), np.int64), *edges]).astype(np.int64)
 
 
-def track_matches(
+def fundamental_inliers(
     features: Sequence[Features],
     pairs: np.ndarray,
     matches: Sequence[np.ndarray],
-    threshold: float | None = TRACK_THRESHOLD,
+    threshold: float | None = EPIPOLAR_THRESHOLD,
 ) -> list[np.ndarray]:
     """Each pair's matches (int ``[K, 2]``, per row of ``pairs`` ``[P, 2]``) that a RANSAC
     fundamental matrix (OpenCV's MAGSAC++) keeps within ``threshold`` px, int ``[K', 2]``; none
-    for a pair of under 8 matches or without a model; all when ``threshold`` is None. Used to
-    build tracks only: COLMAP's own verification still gets every match."""
+    for a pair of under 8 matches or without a model; all when ``threshold`` is None.
+
+    Mutual nearest neighbours are a quarter right on rendered rooms: COLMAP's own RANSAC then
+    runs to its trial cap on every pair, and its 4 px verification lets wrong matches near their
+    epipolar line into the tracks. This leaves COLMAP few wrong matches to weed out."""
     import cv2
 
     if threshold is None:
@@ -146,57 +145,90 @@ def track_matches(
         pair_matches = np.asarray(pair_matches, np.int64).reshape(-1, 2)
         inliers = None
         if len(pair_matches) >= 8:
-            _, inliers = cv2.findFundamentalMat(
-                features[i].keypoints[pair_matches[:, 0]].astype(np.float64),
-                features[j].keypoints[pair_matches[:, 1]].astype(np.float64),
-                cv2.USAC_MAGSAC,
-                threshold,
-                0.999,
-                10000,
-            )
+            try:
+                _, inliers = cv2.findFundamentalMat(
+                    features[i].keypoints[pair_matches[:, 0]].astype(np.float64),
+                    features[j].keypoints[pair_matches[:, 1]].astype(np.float64),
+                    cv2.USAC_MAGSAC,
+                    threshold,
+                    0.999,
+                    10000,
+                )
+            except cv2.error:  # USAC asserts on some degenerate sets (all points on a line)
+                inliers = None
         keep = np.zeros(len(pair_matches), bool) if inliers is None else inliers.ravel() > 0
         kept.append(pair_matches[keep])
     return kept
 
 
 def keypoint_tracks(
-    counts: Sequence[int], pairs: np.ndarray, matches: Sequence[np.ndarray]
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Tracks: the connected components of (image, keypoint) nodes joined by the matches
-    (union-find).
+    counts: Sequence[int],
+    pairs: np.ndarray,
+    matches: Sequence[np.ndarray],
+    distances: Sequence[np.ndarray] | None = None,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Tracks of (image, keypoint) nodes that never hold two keypoints of one image: union-find
+    over the matches taken closest first in descriptor space, refusing a merge whose two tracks
+    share an image. Plain connected components would let one wrong match join two tracks, and
+    spoil both for every image they reach; here the match that would do so is left out, and it
+    is usually the weaker one.
 
     counts: keypoints per image ``[I]``; pairs: int ``[P, 2]`` image indices; matches: per pair
-    int ``[K, 2]`` (keypoint of image i, of image j). Returns (nodes int ``[V, 2]`` (image,
-    keypoint) of every matched keypoint, ordered by track; track int ``[V]``, 0 to T - 1;
-    consistent bool ``[T]``: the track holds at most one keypoint of each image). A track that
-    holds two keypoints of one image joins points COLMAP keeps apart: some match in it is wrong.
+    int ``[K, 2]`` (keypoint of image i, of image j); distances: per pair float ``[K]``, the
+    order in which matches are taken (None: as given). Returns (nodes int ``[V, 2]`` (image,
+    keypoint) of every keypoint in a track of two or more, ordered by track then image; track
+    int ``[V]``, 0 to T - 1).
     """
     offsets, edges = _match_edges(counts, pairs, matches)
-    parent = np.arange(offsets[-1])
-    u, v = edges[:, 0], edges[:, 1]
-    while True:
-        # Hook each edge's larger root under its smaller one (parent[x] <= x: no cycles), then
-        # compress every path to its root; repeat until each edge's ends share a root.
-        low, high = np.minimum(parent[u], parent[v]), np.maximum(parent[u], parent[v])
-        if np.array_equal(low, high):
-            break
-        np.minimum.at(parent, high, low)
-        while not np.array_equal(parent[parent], parent):
-            parent = parent[parent]
-    matched = np.zeros(len(parent), bool)
-    matched[edges.ravel()] = True
-    node = np.flatnonzero(matched)
-    root = parent[node]
+    if distances is not None:
+        flat = np.concatenate([np.zeros(0), *(np.ravel(d) for d in distances)])
+        edges = edges[np.argsort(flat, kind="stable")]
+    image_of = np.repeat(np.arange(len(counts)), np.diff(offsets)).tolist()
+    parent = list(range(int(offsets[-1])))
+    images: dict[int, set] = {}  # root -> the images its track holds (absent: its own alone)
+
+    def find(x: int) -> int:
+        while parent[x] != x:
+            parent[x] = parent[parent[x]]  # path halving
+            x = parent[x]
+        return x
+
+    # A Python loop: each merge must see the merges before it (a video's 10^6 matches: seconds).
+    for u, v in edges.tolist():
+        ru, rv = find(u), find(v)
+        if ru == rv:
+            continue
+        su = images.pop(ru, None) or {image_of[ru]}
+        sv = images.pop(rv, None) or {image_of[rv]}
+        if not su.isdisjoint(sv):
+            images[ru], images[rv] = su, sv
+            continue
+        if len(su) < len(sv):
+            ru, rv, su, sv = rv, ru, sv, su
+        parent[rv] = ru
+        images[ru] = su | sv
+    node = np.unique(edges.ravel())
+    root = np.array([find(x) for x in node.tolist()], np.int64).reshape(-1)
+    roots, sizes = np.unique(root, return_counts=True)
+    keep = np.isin(root, roots[sizes > 1])
+    node, root = node[keep], root[keep]
     order = np.lexsort((node, root))
     node, root = node[order], root[order]
     _, track = np.unique(root, return_inverse=True)
     image = np.searchsorted(offsets, node, side="right") - 1
     nodes = np.stack([image, node - offsets[image]], axis=1)
-    # Nodes are ordered by track, then image: a repeated (track, image) is adjacent.
-    repeated = (track[1:] == track[:-1]) & (image[1:] == image[:-1])
-    consistent = np.ones(track.max(initial=-1) + 1, bool)
-    consistent[track[1:][repeated]] = False
-    return nodes.astype(np.int64), track.astype(np.int64), consistent
+    return nodes.astype(np.int64).reshape(-1, 2), track.astype(np.int64).reshape(-1)
+
+
+def descriptor_distances(
+    features: Sequence[Features], pairs: np.ndarray, matches: Sequence[np.ndarray]
+) -> list[np.ndarray]:
+    """Each match's L2 descriptor distance, float32 ``[K]`` per row of ``pairs``."""
+    rows = [np.asarray(f.descriptors, np.float32).reshape(len(f.keypoints), -1) for f in features]
+    return [
+        np.linalg.norm(rows[i][m[:, 0]] - rows[j][m[:, 1]], axis=1)
+        for (i, j), m in zip(pairs, (np.asarray(m, np.int64).reshape(-1, 2) for m in matches))
+    ]
 
 
 def track_anchors(track: np.ndarray, degree: np.ndarray, scores: np.ndarray) -> np.ndarray:
@@ -208,37 +240,51 @@ def track_anchors(track: np.ndarray, degree: np.ndarray, scores: np.ndarray) -> 
     return order[first]
 
 
+class Refinement(NamedTuple):
+    """What :func:`refine_keypoints` returns.
+
+    features: each image's detections, keypoints ``[N_i, 2]`` moved where a move was found.
+    matches: per pair int ``[K', 2]``, the given matches whose two keypoints both settled: moved
+    onto their track anchor's patch, or that anchor. counts: ``tracks``, ``observations``
+    (non-anchor keypoints in tracks), ``moved``, ``matches`` (given), ``settled_matches``.
+    """
+
+    features: list[Features]
+    matches: list[np.ndarray]
+    counts: dict
+
+
 def refine_keypoints(
     greys: Sequence[np.ndarray],
     features: Sequence[Features],
     pairs: np.ndarray,
     matches: Sequence[np.ndarray],
     affine_steps: int = AFFINE_STEPS,
-    threshold: float | None = TRACK_THRESHOLD,
     progress: Callable = iter,
-) -> tuple[list[Features], dict]:
-    """Track-consistent refinement (module docstring): each consistent track's observations
-    moved to the NCC peak (and affine polish) of its anchor's grey patch, the anchor fixed.
+) -> Refinement:
+    """Track-consistent refinement: the observations of each track (:func:`keypoint_tracks`)
+    moved to the NCC peak and affine polish of its anchor's grey patch (``refine_matches``), the
+    anchor fixed; only matches between keypoints that settled so are kept.
 
-    greys: each image's grey ``[H, W]`` (uint8, ``inference.images.grey``, keeps a video's frames small; any sequence that indexes, e.g. one
-    reading from disk); features: each image's detections; pairs: int ``[P, 2]``; matches: per
-    pair int ``[K, 2]`` (:func:`match_pairs`); threshold: :func:`track_matches`' (None: tracks
-    over every match); ``progress`` wraps the loop over image pairs.
-    Returns (features with keypoints ``[N_i, 2]`` refined where a move was found, the rest as
-    detected; counts: ``track_matches`` (the matches the tracks were built of), ``tracks``,
-    ``consistent_tracks``, ``observations`` (non-anchor observations of consistent tracks),
-    ``moved``).
+    greys: each image's grey ``[H, W]`` (uint8, ``inference.images.grey``; any sequence that
+    indexes, e.g. one reading from disk, as a video's frames would not all fit in memory);
+    features: each image's detections; pairs: int ``[P, 2]``; matches: per pair int ``[K, 2]``,
+    best :func:`fundamental_inliers` (tracks over raw mutual nearest neighbours are mostly
+    wrong); ``progress`` wraps the loop over image pairs.
     """
     sizes = [len(f.keypoints) for f in features]
-    matches = track_matches(features, pairs, matches, threshold)
-    nodes, track, consistent = keypoint_tracks(sizes, pairs, matches)
+    matches = [np.asarray(m, np.int64).reshape(-1, 2) for m in matches]
+    nodes, track = keypoint_tracks(
+        sizes, pairs, matches, descriptor_distances(features, pairs, matches)
+    )
     offsets, edges = _match_edges(sizes, pairs, matches)
     flat = offsets[nodes[:, 0]] + nodes[:, 1]
     degree = np.bincount(edges.ravel(), minlength=offsets[-1])[flat]
     scores = np.concatenate([np.asarray(f.scores, np.float64).reshape(-1) for f in features])
     anchor = track_anchors(track, degree, scores[flat])[track]  # each node's anchor node
-    todo = consistent[track] & (anchor != np.arange(len(track)))
+    todo = anchor != np.arange(len(track))
     refined = [np.array(f.keypoints, np.float32).reshape(-1, 2) for f in features]
+    settled = [np.zeros(n, bool) for n in sizes]
     source, target = nodes[anchor[todo]], nodes[todo]
     # One (anchor image, image) pair at a time, as refine_matches takes two images: sorted so
     # each pair is one slice (a video's thousands of pairs never rescan every observation).
@@ -257,15 +303,21 @@ def refine_keypoints(
             affine_steps=affine_steps,
         )
         refined[b][target[lo:hi, 1][ok]] = points[ok]
+        settled[b][target[lo:hi, 1][ok]] = True
+        settled[a][source[lo:hi, 1][ok]] = True
         moved += int(ok.sum())
+    # A keypoint that did not move keeps the detector's error (about 1 px for `distilled`):
+    # on rendered paths its matches cost more rotation accuracy than their points add.
+    kept = [m[settled[i][m[:, 0]] & settled[j][m[:, 1]]] for (i, j), m in zip(pairs, matches)]
     counts = {
-        "track_matches": int(sum(len(m) for m in matches)),
-        "tracks": len(consistent),
-        "consistent_tracks": int(consistent.sum()),
+        "tracks": int(track.max(initial=-1) + 1),
         "observations": int(todo.sum()),
         "moved": moved,
+        "matches": int(sum(len(m) for m in matches)),
+        "settled_matches": int(sum(len(m) for m in kept)),
     }
-    return [f._replace(keypoints=k) for f, k in zip(features, refined)], counts
+    features = [f._replace(keypoints=k) for f, k in zip(features, refined)]
+    return Refinement(features, kept, counts)
 
 
 def write_database(
@@ -404,10 +456,12 @@ def export_features(
     features: Sequence[Features],
     pairs: np.ndarray,
     matches: Sequence[np.ndarray],
+    kept: Sequence[np.ndarray] | None = None,
 ) -> None:
     """Features and raw matches in one ``.npz`` for other tools (COLMAP, hloc): per image
     ``NAME/keypoints`` float32 ``[N, 2]`` in COLMAP's convention, ``NAME/scores`` ``[N]``,
-    ``NAME/descriptors`` ``[N, D]``; per pair ``NAME1//NAME2/matches`` int ``[K, 2]``."""
+    ``NAME/descriptors`` ``[N, D]``; per pair ``NAME1//NAME2/matches`` int ``[K, 2]`` and, when
+    ``kept`` is given, ``NAME1//NAME2/kept`` ``[K', 2]`` (those the database got)."""
     arrays = {}
     for name, found in zip(names, features):
         arrays[f"{name}/keypoints"] = colmap_keypoints(found.keypoints)
@@ -415,6 +469,8 @@ def export_features(
         arrays[f"{name}/descriptors"] = np.asarray(found.descriptors)
     for (i, j), pair_matches in zip(pairs, matches):
         arrays[f"{names[i]}//{names[j]}/matches"] = np.asarray(pair_matches, np.int64)
+    for (i, j), pair_kept in zip(pairs, kept if kept is not None else []):
+        arrays[f"{names[i]}//{names[j]}/kept"] = np.asarray(pair_kept, np.int64).reshape(-1, 2)
     with open(path, "wb") as file:
         np.savez(file, **arrays)
 

@@ -43,6 +43,7 @@ RANGES: dict[str, tuple[float, float]] = {
     "--network-side": (0, MAX_RESOLUTION),
     "--every": (1, 10**6),
     "--max-frames": (1, 10**9),
+    "--epipolar": (0, 1000),
 }
 
 
