@@ -93,6 +93,47 @@ def test_hardest_negative_loss_is_zero_once_every_true_match_beats_its_hardest_n
     assert float(hinge) == pytest.approx(0.5)
 
 
+def test_dual_softmax_loss_matches_numpy_loop():
+    rng = np.random.default_rng(5)
+    fa, fb = (rng.normal(size=(n, 4)).astype(np.float32) for n in (5, 6))
+    fa /= np.linalg.norm(fa, axis=1, keepdims=True)
+    fb /= np.linalg.norm(fb, axis=1, keepdims=True)
+    nearest = np.array([2, 0, 5, 5, 1])
+    paired = np.array([True, True, False, True, True])
+    keep = rng.uniform(size=(5, 6)) < 0.7
+    partner = np.zeros((5, 6), bool)
+    partner[np.arange(5)[paired], nearest[paired]] = True
+    inside = keep | partner
+    logits = (fa @ fb.T) / 0.1
+    total = 0.0
+    for i in np.flatnonzero(paired):
+        j = nearest[i]
+        row = np.log(np.sum(np.exp(logits[i][inside[i]])))
+        column = np.log(np.sum(np.exp(logits[:, j][inside[:, j]])))
+        total += -(2 * logits[i, j] - row - column)
+    got = losses.dual_softmax_loss(*map(jnp.asarray, (fa, fb, nearest, paired, keep)), 0.1)
+    assert float(got) == pytest.approx(total / paired.sum(), rel=1e-5)
+
+
+def test_dual_softmax_loss_falls_as_the_partner_stands_out_and_keeps_a_finite_gradient():
+    eye = jnp.eye(4)  # point i of A matches point i of B; distinct points are orthogonal
+    nearest, paired = jnp.arange(4), jnp.ones(4, bool)
+    none_kept = jnp.zeros((4, 4), bool)  # only the partners: a certain match
+    assert float(losses.dual_softmax_loss(eye, eye, nearest, paired, none_kept)) == pytest.approx(
+        0.0
+    )
+    every = jnp.ones((4, 4), bool)
+    sharp = losses.dual_softmax_loss(eye, eye, nearest, paired, every, temperature=0.1)
+    blunt = losses.dual_softmax_loss(eye, eye, nearest, paired, every, temperature=1.0)
+    assert 0 < float(sharp) < float(blunt)
+    # Columns with nothing kept and no partner (point 3 of B unpaired) must not poison it.
+    grad = jax.grad(
+        lambda a: losses.dual_softmax_loss(a, eye, nearest, paired.at[3].set(False), none_kept)
+    )(eye)
+    assert bool(jnp.all(jnp.isfinite(grad)))
+    assert float(losses.dual_softmax_loss(eye, eye, nearest, jnp.zeros(4, bool), every)) == 0.0
+
+
 @pytest.mark.parametrize("mode", ["squared", "signed"])
 def test_decorrelation_loss_matches_numpy_corrcoef(mode):
     f = np.random.default_rng(2).normal(size=(50, 6)).astype(np.float32)
@@ -247,6 +288,30 @@ def test_the_hardest_negative_term_seeks_negatives_beyond_the_safe_radius_only()
         )
         assert float(metrics["loss/hard"]) == pytest.approx(float(expected), rel=1e-5)
     assert np.any((distances > 1) & (distances <= 16) & ~c)  # the radius does exclude some
+
+
+def test_the_matching_term_leaves_neighbouring_cells_out_of_the_softmaxes():
+    images = jax.random.uniform(jax.random.PRNGKey(6), (1, 32, 48, 3))
+    pred, _ = predict(SMALL_MODEL, images)
+    pred = jax.tree.map(lambda x: x[0], pred)
+    shift = jnp.array([[1.0, 0, 3], [0, 1, 2], [0, 0, 1]])
+    corr = losses.branch_correspondences(pred, pred, shift, 32, 48)
+    c = np.asarray(correspondence.correspondence_matrix(corr, 8.0)) > 0
+    visible = np.asarray(corr.valid_a)[:, None] & np.asarray(corr.valid_b)[None, :]
+    config = losses.LossConfig(alpha_match=2.0, match_temperature=0.2)
+    total, metrics = jax.jit(losses.pair_loss, static_argnums=(3, 4, 5))(
+        pred, pred, shift, 32, 48, config
+    )
+    expected = losses.dual_softmax_loss(
+        pred.descriptors, pred.descriptors, corr.nearest, corr.paired, ~c & visible, 0.2
+    )
+    assert float(metrics["loss/match"]) == pytest.approx(2 * float(expected), rel=1e-5)
+    assert np.any(c & visible & ~np.eye(len(c), dtype=bool))  # some pairs are left out
+    off = jax.jit(losses.pair_loss, static_argnums=(3, 4, 5))(pred, pred, shift, 32, 48)[1]
+    assert float(off["loss/match"]) == 0.0
+    assert float(total) == pytest.approx(
+        float(off["loss"]) + float(metrics["loss/match"]), rel=1e-5
+    )
 
 
 def test_cpu_photos_descriptor_weights_keep_the_papers_balance_at_128x160():

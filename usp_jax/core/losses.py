@@ -48,6 +48,10 @@ class LossConfig:
     alpha_hard: float = 0.0
     margin_hard: float = 0.5
     hard_safe_radius: float = 16.0  # px: the hardest negative is sought beyond it
+    # Not in the paper: the dual-softmax matching loss (dual_softmax_loss). Off by default;
+    # experiments/matching_loss.py turns it on.
+    alpha_match: float = 0.0
+    match_temperature: float = 0.1
     # "squared" (default) decorrelates; "signed" is eq. 14 as printed, which anti-correlated
     # dimensions minimise without decorrelating (see decorrelation_loss).
     decorrelation: str = "squared"
@@ -162,6 +166,37 @@ def hardest_negative_loss(
     return (loss_a + loss_b) / jnp.maximum(count_a + count_b, 1)
 
 
+def dual_softmax_loss(
+    desc_a: jax.Array,
+    desc_b: jax.Array,
+    nearest: jax.Array,
+    paired: jax.Array,
+    keep: jax.Array,
+    temperature: float = LossConfig.match_temperature,
+) -> jax.Array:
+    """Negative log-likelihood of each point-pair under the dual softmax (not in the paper; the
+    matching loss of LoFTR and XFeat): with l_ij = s_ij / t, P_ij = softmax_j(l_i.) *
+    softmax_i(l_.j), averaged -log P_i,nearest(i) over A's paired points i.
+
+    Eq. 13 pushes every negative below a fixed margin on its own; a nearest-neighbour match
+    goes wrong when one other point is more similar than the true partner, which is what each
+    softmax here weighs: the partner against every competitor of its row and its column.
+
+    desc_a: [MA, F], desc_b: [MB, F] (unit rows); nearest: int [MA], paired: bool [MA]
+    (``Correspondences``); keep: bool [MA, MB], the pairs in the softmaxes (the partners are
+    always in). Returns the scalar mean over paired points (0 when none).
+    """
+    logits = desc_a @ desc_b.T / temperature
+    partner = jax.nn.one_hot(nearest, desc_b.shape[0], dtype=bool) & paired[:, None]
+    # A large finite floor, not -inf: a column with nothing kept would give inf - inf, and its
+    # NaN would reach the gradient through the softmax's backward pass.
+    logits = jnp.where(keep | partner, logits, -1e9)
+    log_p = 2 * logits - jax.nn.logsumexp(logits, axis=1, keepdims=True)
+    log_p = log_p - jax.nn.logsumexp(logits, axis=0, keepdims=True)
+    picked = jnp.sum(jnp.where(partner, log_p, 0.0), axis=1)
+    return -jnp.sum(jnp.where(paired, picked, 0.0)) / jnp.maximum(jnp.sum(paired), 1)
+
+
 def decorrelation_loss(descriptors: jax.Array, mode: str = "squared") -> jax.Array:
     """Off-diagonal correlation between descriptor dimensions of one branch, eqs. 14-15.
 
@@ -254,6 +289,7 @@ def pair_loss(
         if config.alpha_hard
         else jnp.zeros(())
     )
+    match = _match_term(pred_a, pred_b, corr, c, mask, config) if config.alpha_match else 0.0
     terms = {
         "usp": config.alpha_usp * usp,
         "uni_xy": config.alpha_uni_xy * uni,
@@ -262,6 +298,7 @@ def pair_loss(
         "desc": config.alpha_desc * desc,
         "decorr": config.alpha_decorr * decorr,
         "hard": config.alpha_hard * hard,
+        "match": config.alpha_match * match,
     }
     total = sum(terms.values())
     metrics = {
@@ -278,6 +315,21 @@ def _hard_term(desc_a, desc_b, corr, c, mask, config: LossConfig) -> jax.Array:
     far = jax.lax.stop_gradient(corr.distances) > config.hard_safe_radius
     positive, negative = c * mask > 0, far & (c == 0) & (mask > 0)
     return hardest_negative_loss(desc_a, desc_b, positive, negative, config.margin_hard)
+
+
+def _match_term(pred_a, pred_b, corr, c, mask, config: LossConfig) -> jax.Array:
+    """:func:`dual_softmax_loss` over the visible pairs. Pairs within eps_descriptor of each
+    other but not a point-pair stay out of the softmaxes: neighbouring cells share their
+    features at 1/8 resolution and cannot be told apart."""
+    keep = (c == 0) & (mask > 0)
+    return dual_softmax_loss(
+        pred_a.descriptors,
+        pred_b.descriptors,
+        corr.nearest,
+        corr.paired,
+        keep,
+        config.match_temperature,
+    )
 
 
 def _similarity_metrics(desc_a, desc_b, c, mask) -> dict:
