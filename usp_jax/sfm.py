@@ -3,9 +3,9 @@ incremental mapper and bundle adjustment through pycolmap (the optional ``sfm`` 
 keypoints and mutual-nearest-neighbour matches in place of COLMAP's SIFT.
 
 The steps, each a function (``usp-jax reconstruct`` runs them in order):
-:func:`detect_images` -> :func:`match_pairs` on :func:`image_pairs` ->
-:func:`fundamental_inliers` -> :func:`refine_keypoints` -> :func:`write_database` -> :func:`verify` -> :func:`map_images`, then :func:`model_summary` and, where true poses are
-known, :func:`pose_errors`. :func:`export_features` writes the features and raw matches for
+:func:`detect_images` -> :func:`match_pairs` on :func:`image_pairs` -> :func:`fundamental_inliers`
+-> :func:`refine_keypoints` -> :func:`write_database` -> :func:`verify` -> :func:`map_images`,
+then :func:`model_summary` and, where true poses are known, :func:`pose_errors`. :func:`export_features` writes the features and raw matches for
 users who run COLMAP or hloc themselves.
 
 It lives beside the CLI rather than in ``inference`` or ``evaluation``: it is an application of
@@ -198,15 +198,14 @@ def keypoint_tracks(
         ru, rv = find(u), find(v)
         if ru == rv:
             continue
-        su = images.pop(ru, None) or {image_of[ru]}
-        sv = images.pop(rv, None) or {image_of[rv]}
+        su, sv = images.get(ru) or {image_of[ru]}, images.get(rv) or {image_of[rv]}
         if not su.isdisjoint(sv):
-            images[ru], images[rv] = su, sv
             continue
         if len(su) < len(sv):
             ru, rv, su, sv = rv, ru, sv, su
         parent[rv] = ru
         images[ru] = su | sv
+        images.pop(rv, None)
     node = np.unique(edges.ravel())
     root = np.array([find(x) for x in node.tolist()], np.int64).reshape(-1)
     roots, sizes = np.unique(root, return_counts=True)

@@ -289,7 +289,11 @@ def pair_loss(
         if config.alpha_hard
         else jnp.zeros(())
     )
-    match = _match_term(pred_a, pred_b, corr, c, mask, config) if config.alpha_match else 0.0
+    match = (
+        _match_term(pred_a.descriptors, pred_b.descriptors, corr, c, mask, config)
+        if config.alpha_match
+        else jnp.zeros(())
+    )
     terms = {
         "usp": config.alpha_usp * usp,
         "uni_xy": config.alpha_uni_xy * uni,
@@ -317,18 +321,13 @@ def _hard_term(desc_a, desc_b, corr, c, mask, config: LossConfig) -> jax.Array:
     return hardest_negative_loss(desc_a, desc_b, positive, negative, config.margin_hard)
 
 
-def _match_term(pred_a, pred_b, corr, c, mask, config: LossConfig) -> jax.Array:
+def _match_term(desc_a, desc_b, corr, c, mask, config: LossConfig) -> jax.Array:
     """:func:`dual_softmax_loss` over the visible pairs. Pairs within eps_descriptor of each
     other but not a point-pair stay out of the softmaxes: neighbouring cells share their
     features at 1/8 resolution and cannot be told apart."""
     keep = (c == 0) & (mask > 0)
     return dual_softmax_loss(
-        pred_a.descriptors,
-        pred_b.descriptors,
-        corr.nearest,
-        corr.paired,
-        keep,
-        config.match_temperature,
+        desc_a, desc_b, corr.nearest, corr.paired, keep, config.match_temperature
     )
 
 
