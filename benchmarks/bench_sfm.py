@@ -4,7 +4,8 @@ SIFT: ``pycolmap.extract_features`` -> ``match_exhaustive`` (photos) or ``match_
 (a video, ``--window`` frames overlap) -> ``incremental_mapping``, COLMAP's defaults.
 Ours (``usp_jax.sfm``, what ``usp-jax reconstruct`` runs): the network's keypoints, mutual
 nearest neighbours on the same pairs, COLMAP's geometric verification and the same mapper.
-Both share one SIMPLE_RADIAL camera (COLMAP's SINGLE camera mode). ``--pipelines`` picks which of
+Both share one camera (COLMAP's SINGLE camera mode): a SIMPLE_RADIAL that COLMAP estimates, or
+on a rendered path the true one (``--intrinsics``). ``--pipelines`` picks which of
 ours run, each a row: ``raw`` gives COLMAP every mutual nearest neighbour; ``filtered`` the
 matches a 1 px fundamental matrix keeps (``sfm.fundamental_inliers``, ``--epipolar``); ``refined``
 those, with each track's keypoints moved onto its anchor's patch and only the matches of
@@ -52,10 +53,16 @@ from usp_jax.inference.images import IMAGE_SUFFIXES, grey, read_image
 RATIO = sfm.RATIO
 EPIPOLAR = sfm.EPIPOLAR_THRESHOLD
 PIPELINES = ("raw", "filtered", "refined")
+INTRINSICS = ("estimated", "prior", "known")
+#: ``--intrinsics``' camera, given to SIFT's pipeline and ours, and whether it is held fixed.
+CAMERA, FIXED = sfm.Camera(), False
+#: ``--colmap-start``'s opposite: ours start the mapper from ``sfm.initial_pair``.
+START = True
 
 
-def rendered_path(folder: pathlib.Path, photos: str, count: int, size, seed: int) -> dict:
-    """Renders a camera path into ``folder``; its true poses, name -> (R, centre)."""
+def rendered_path(folder: pathlib.Path, photos: str, count: int, size, seed: int):
+    """Renders a camera path into ``folder``; its true poses, name -> (R, centre), and its
+    camera (COLMAP's PINHOLE: COLMAP's principal point is ours plus half a pixel)."""
     from usp_jax.evaluation import scenes
 
     scene = scenes.room(scenes.load_photos(photos), seed=seed)
@@ -65,7 +72,19 @@ def rendered_path(folder: pathlib.Path, photos: str, count: int, size, seed: int
         image = scenes.render(scene, camera)[0]
         cv2.imwrite(str(folder / name), cv2.cvtColor(image, cv2.COLOR_RGB2BGR))
         poses[name] = (camera.R, camera.centre)
-    return poses
+    (fx, _, cx), (_, fy, cy) = camera.K[:2]
+    offset = sfm.COLMAP_OFFSET
+    return poses, sfm.Camera("PINHOLE", (fx, fy, cx + offset, cy + offset))
+
+
+def intrinsics(true: sfm.Camera, mode: str) -> tuple[sfm.Camera, bool]:
+    """``--intrinsics``' camera (a true PINHOLE ``true``) and whether the mapper holds it."""
+    if mode == "known":
+        return true, True
+    if mode == "prior":  # COLMAP's camera for a photo with EXIF: its focal length, refined
+        fx, fy, cx, cy = true.params
+        return sfm.Camera("SIMPLE_RADIAL", ((fx + fy) / 2, cx, cy, 0.0)), False
+    return sfm.Camera(), False
 
 
 def video_frames(video: str, folder: pathlib.Path, every: int) -> None:
@@ -80,9 +99,10 @@ def video_frames(video: str, folder: pathlib.Path, every: int) -> None:
         index += 1
 
 
-def _mapped(database, images, work, seconds) -> list:
+def _mapped(database, images, work, seconds, general_start=True) -> list:
     start = time.perf_counter()
-    models = sfm.map_images(database, images, work / "sparse")
+    sparse = work / "sparse"
+    models = sfm.map_images(database, images, sparse, None, FIXED, general_start and START)
     seconds["map"] = time.perf_counter() - start
     return models
 
@@ -91,7 +111,11 @@ def run_sift(images: pathlib.Path, names, work: pathlib.Path, window) -> tuple[l
     seconds, database = {}, work / "database.db"
     start = time.perf_counter()
     pycolmap.extract_features(
-        database, images, image_names=names, camera_mode=pycolmap.CameraMode.SINGLE
+        database,
+        images,
+        image_names=names,
+        camera_mode=pycolmap.CameraMode.SINGLE,
+        reader_options=sfm.reader_options(CAMERA),
     )
     seconds["detect"] = time.perf_counter() - start
     start = time.perf_counter()
@@ -105,7 +129,7 @@ def run_sift(images: pathlib.Path, names, work: pathlib.Path, window) -> tuple[l
             ),
         )
     seconds["match + verify"] = time.perf_counter() - start
-    return _mapped(database, images, work, seconds), seconds
+    return _mapped(database, images, work, seconds, general_start=False), seconds
 
 
 def detect_ours(images, names, detector) -> tuple[list, float]:
@@ -132,7 +156,7 @@ def run_ours(images, names, work, window, detected, pipeline) -> tuple[list, dic
         features, matches, counts = sfm.refine_keypoints(greys, features, pairs, matches)
         seconds["refine"] = time.perf_counter() - start
     start = time.perf_counter()
-    sfm.write_database(database, images, names, features, pairs, matches)
+    sfm.write_database(database, images, names, features, pairs, matches, CAMERA)
     sfm.verify(database)
     seconds["verify"] = time.perf_counter() - start
     return _mapped(database, images, work, seconds), seconds, counts
@@ -143,7 +167,7 @@ def report(name, models, seconds, poses) -> dict:
     row["seconds"]["total"] = sum(seconds.values())
     if models:
         row.update(sfm.model_summary(models[0]))
-        # The shared camera's focal length: its error drives the rotation error on our paths.
+        # The shared camera's focal length as bundle adjustment left it (true: 554.3 px).
         row["focal_px"] = float(next(iter(models[0].cameras.values())).params[0])
         if poses:
             row.update(sfm.pose_errors(models[0], poses))
@@ -185,20 +209,35 @@ def _parser() -> argparse.ArgumentParser:
         default=sfm.EPIPOLAR_THRESHOLD,
         help="filtered and refined: the fundamental matrix's threshold, px",
     )
+    p.add_argument(
+        "--intrinsics",
+        choices=INTRINSICS,
+        default="estimated",
+        help="--scene: COLMAP estimates the shared camera from its guess of the focal length"
+        " (estimated), from the true one as a photo's EXIF gives it (prior), or gets the true"
+        " camera and holds it fixed (known)",
+    )
+    p.add_argument(
+        "--colmap-start",
+        action="store_true",
+        help="ours: COLMAP's mapper chooses its own first pair (reconstruct's choice before"
+        " sfm.initial_pair; SIFT's rows always do)",
+    )
     p.add_argument("--repeats", type=int, default=1, help="runs of each of our rows")
     p.add_argument("--json", help="write the rows here")
     return p
 
 
 def main() -> None:
-    global RATIO, EPIPOLAR
+    global RATIO, EPIPOLAR, CAMERA, FIXED, START
     args = _parser().parse_args()
-    RATIO, EPIPOLAR = args.ratio, args.epipolar
+    RATIO, EPIPOLAR, START = args.ratio, args.epipolar, not args.colmap_start
     root = pathlib.Path(tempfile.mkdtemp(prefix="bench-sfm-"))
     images, poses = root / "images", None
     images.mkdir()
     if args.scene:
-        poses = rendered_path(images, args.photos, args.scene, args.size, args.seed)
+        poses, camera = rendered_path(images, args.photos, args.scene, args.size, args.seed)
+        CAMERA, FIXED = intrinsics(camera, args.intrinsics)
     elif pathlib.Path(args.images).is_dir():
         for path in sorted(pathlib.Path(args.images).iterdir()):
             if path.suffix.lower() in IMAGE_SUFFIXES:

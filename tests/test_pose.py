@@ -5,6 +5,7 @@ import math
 import cv2
 import numpy as np
 import pytest
+from scipy.spatial.transform import Rotation
 
 from usp_jax.evaluation import pose
 from usp_jax.inference.features import Features
@@ -144,3 +145,31 @@ def test_a_pair_without_a_valid_pose_is_named(tmp_path, edit, message):
     edit(folder / "p1")
     with pytest.raises(ValueError, match=f"p1.*{message}"):
         pose.read_pairs(folder)
+
+
+def _poses(count: int, seed: int = 0):
+    rng = np.random.default_rng(seed)
+    return Rotation.random(count, random_state=seed).as_matrix(), rng.normal(0, 2, (count, 3))
+
+
+def test_relative_pose_errors_ignore_the_gauge_and_measure_a_known_turn():
+    rotations, centres = _poses(4)
+    # Another world frame and scale: X' = 3 Q X + T, so R' = R Q^T and c' = 3 Q c + T.
+    q = Rotation.from_euler("xyz", [20, -50, 70], degrees=True).as_matrix()
+    moved = (rotations @ q.T, 3 * centres @ q.T + [1.0, -2.0, 5.0])
+    rotation, direction = pose.relative_pose_errors(*moved, rotations, centres)
+    np.testing.assert_allclose(rotation, 0, atol=1e-5)
+    np.testing.assert_allclose(direction, 0, atol=1e-5)
+    # Camera 0 turned 2 degrees more about its own x axis: each of its 3 pairs is off by 2.
+    turned = rotations.copy()
+    turned[0] = Rotation.from_euler("x", 2, degrees=True).as_matrix() @ rotations[0]
+    rotation, _ = pose.relative_pose_errors(turned, centres, rotations, centres)
+    np.testing.assert_allclose(rotation, [2, 2, 2, 0, 0, 0], atol=1e-6)
+
+
+def test_translation_direction_error_is_the_angle_between_baselines_in_camera_j():
+    eye = np.stack([np.eye(3)] * 2)
+    true_centres = np.array([[0.0, 0, 0], [1, 0, 0]])
+    found = np.array([[0.0, 0, 0], [1, 1, 0]])  # the second camera 45 degrees off the line
+    _, direction = pose.relative_pose_errors(eye, found, eye, true_centres)
+    np.testing.assert_allclose(direction, [45.0])

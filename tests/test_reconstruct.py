@@ -60,6 +60,30 @@ def test_a_folder_holding_something_else_is_refused(small_weights, tmp_path, cap
     assert sorted(p.name for p in out.iterdir()) == ["notes.txt"]
 
 
+@pytest.mark.parametrize(
+    "options, message",
+    [
+        (["--camera-model", "PINHOL"], "camera model 'PINHOL' is not COLMAP's; one of"),
+        (["--camera-params", "500,320,240"], "SIMPLE_RADIAL takes 4 finite parameters"),
+        (["--camera-params", "500,x"], "expected numbers separated by commas, got '500,x'"),
+        (["--no-refine-intrinsics"], "--no-refine-intrinsics needs the camera"),
+    ],
+    ids=["unknown-model", "wrong-count", "not-numbers", "fixed-without-camera"],
+)
+def test_a_camera_colmap_cannot_use_is_one_line_exit_2_and_writes_nothing(
+    options, message, small_weights, tmp_path, capsys
+):
+    folder = _write(tmp_path / "images", {"a.png": _noise(0), "b.png": _noise(1)})
+    try:
+        status = main([*_argv(folder, tmp_path / "out", small_weights), *options])
+    except SystemExit as stop:  # argparse's own check of the option's type
+        status = stop.code
+    assert status == 2
+    error = capsys.readouterr().err.strip()
+    assert "\n" not in error and message in error
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["images"]
+
+
 def test_without_pycolmap_the_error_names_the_install_command(
     small_weights, tmp_path, capsys, monkeypatch
 ):
@@ -145,6 +169,37 @@ def test_a_rendered_path_reconstructs_with_its_true_relative_rotations(rendered)
 
 
 @pytest.mark.slow
+def test_a_known_camera_is_held_fixed_and_the_path_still_reconstructs(rendered, tmp_path):
+    import pycolmap
+
+    from usp_jax import sfm
+    from usp_jax.evaluation import scenes
+
+    images, poses, _ = rendered
+    (fx, _, cx), (_, fy, cy) = scenes.intrinsics(HEIGHT, WIDTH)[:2]
+    known = [fx, fy, cx + 0.5, cy + 0.5]  # COLMAP's principal point is OpenCV's plus 0.5
+    out = tmp_path / "known"
+    argv = ["reconstruct", str(images), "--out", str(out), "--top", str(TOP), "--no-progress"]
+    assert (
+        main([*argv, "--camera-model", "PINHOLE", "--camera-params", ",".join(map(str, known))])
+        == 0
+    )
+    model = pycolmap.Reconstruction(str(out / "sparse" / "0"))
+    (camera,) = model.cameras.values()
+    assert camera.model_name == "PINHOLE"
+    np.testing.assert_allclose(camera.params, known)  # bundle adjustment left it as given
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["camera"] == {
+        "model": "PINHOLE",
+        "params": known,
+        "refined": False,
+        "found": list(camera.params),
+    }
+    assert model.num_reg_images() == VIEWS
+    assert sfm.pose_errors(model, poses)["median_rotation_error"] < 1.0
+
+
+@pytest.mark.slow
 def test_the_database_holds_what_the_detector_and_matcher_produced(rendered):
     import pycolmap
 
@@ -178,7 +233,7 @@ def test_the_database_holds_what_the_detector_and_matcher_produced(rendered):
             np.testing.assert_array_equal(exported[f"{pair}/kept"], matches)
             assert set(map(tuple, matches)) <= set(map(tuple, expected)) and len(matches) > 20
         counts = summary["refinement"]
-        assert db.num_matches() == counts["settled_matches"] <= summary["epipolar_matches"]
+        assert db.num_matches() == counts["kept_matches"] <= summary["epipolar_matches"]
         assert summary["epipolar_matches"] == counts["matches"] <= summary["matches"]
     assert 0 < differing <= counts["moved"]
 
@@ -199,11 +254,12 @@ def test_refine_keypoints_writes_the_refined_keypoints_to_the_database_and_count
     assert summary["refine_keypoints"] is True and "refine" in summary["seconds"]
     counts = summary["refinement"]
     assert counts["tracks"] > 0 and counts["observations"] >= counts["moved"]
-    assert counts["settled_matches"] <= counts["matches"] == summary["epipolar_matches"]
+    assert counts["settled_matches"] <= counts["kept_matches"] <= counts["matches"]
+    assert counts["matches"] == summary["epipolar_matches"]
     exported = np.load(out / "features.npz")
     with pycolmap.Database.open(str(out / "database.db")) as db:
         for image in db.read_all_images():
             np.testing.assert_array_equal(
                 db.read_keypoints(image.image_id)[:, :2], exported[f"{image.name}/keypoints"]
             )
-        assert db.num_matches() == counts["settled_matches"]
+        assert db.num_matches() == counts["kept_matches"]

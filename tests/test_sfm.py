@@ -1,5 +1,7 @@
-"""usp_jax.sfm: COLMAP's pixel convention, the pairs, the matcher, the pose errors and the
-database, with pycolmap itself as the reference."""
+"""usp_jax.sfm: COLMAP's pixel convention, the pairs, the matcher, the pose errors of a model and
+the database, with pycolmap itself as the reference."""
+
+import pathlib
 
 import cv2
 import numpy as np
@@ -50,34 +52,6 @@ def test_the_ratio_test_keeps_a_match_whose_nearest_is_closer_than_ratio_times_t
     assert len(mutual_nearest_neighbours(first, second, 0.6)) == 0  # 1 >= 0.6 * 1.5
 
 
-def _poses(count: int, seed: int = 0):
-    rng = np.random.default_rng(seed)
-    return Rotation.random(count, random_state=seed).as_matrix(), rng.normal(0, 2, (count, 3))
-
-
-def test_relative_pose_errors_ignore_the_gauge_and_measure_a_known_turn():
-    rotations, centres = _poses(4)
-    # Another world frame and scale: X' = 3 Q X + T, so R' = R Q^T and c' = 3 Q c + T.
-    q = Rotation.from_euler("xyz", [20, -50, 70], degrees=True).as_matrix()
-    moved = (rotations @ q.T, 3 * centres @ q.T + [1.0, -2.0, 5.0])
-    rotation, direction = sfm.relative_pose_errors(*moved, rotations, centres)
-    np.testing.assert_allclose(rotation, 0, atol=1e-5)
-    np.testing.assert_allclose(direction, 0, atol=1e-5)
-    # Camera 0 turned 2 degrees more about its own x axis: each of its 3 pairs is off by 2.
-    turned = rotations.copy()
-    turned[0] = Rotation.from_euler("x", 2, degrees=True).as_matrix() @ rotations[0]
-    rotation, _ = sfm.relative_pose_errors(turned, centres, rotations, centres)
-    np.testing.assert_allclose(rotation, [2, 2, 2, 0, 0, 0], atol=1e-6)
-
-
-def test_translation_direction_error_is_the_angle_between_baselines_in_camera_j():
-    eye = np.stack([np.eye(3)] * 2)
-    true_centres = np.array([[0.0, 0, 0], [1, 0, 0]])
-    found = np.array([[0.0, 0, 0], [1, 1, 0]])  # the second camera 45 degrees off the line
-    _, direction = sfm.relative_pose_errors(eye, found, eye, true_centres)
-    np.testing.assert_allclose(direction, [45.0])
-
-
 def test_mixed_sizes_are_refused_naming_both_images_and_the_shared_camera():
     with pytest.raises(ValueError, match=r"b.png is 40x30.*one COLMAP camera"):
         sfm.check_sizes(["a.png", "b.png"], [(20, 40), (30, 40)])
@@ -91,12 +65,16 @@ def _features(count: int, seed: int) -> Features:
     return Features(keypoints, rng.random(count, np.float32), rng.random((count, 8), np.float32))
 
 
-def test_database_holds_the_keypoints_in_colmaps_convention_and_the_matches(tmp_path):
-    images = tmp_path / "images"
-    images.mkdir()
-    names = ["a.png", "b.png", "c.png"]
+def _blank_images(folder, names, size=(48, 64)):
+    folder.mkdir(parents=True)
     for name in names:
-        cv2.imwrite(str(images / name), np.zeros((48, 64, 3), np.uint8))
+        cv2.imwrite(str(folder / name), np.zeros((*size, 3), np.uint8))
+    return folder
+
+
+def test_database_holds_the_keypoints_in_colmaps_convention_and_the_matches(tmp_path):
+    names = ["a.png", "b.png", "c.png"]
+    images = _blank_images(tmp_path / "images", names)
     features = [_features(n, seed) for seed, n in enumerate((30, 25, 20))]
     pairs = sfm.image_pairs(3)
     matches = sfm.match_pairs(features, pairs)
@@ -108,6 +86,113 @@ def test_database_holds_the_keypoints_in_colmaps_convention_and_the_matches(tmp_
         for (i, j), pair_matches in zip(pairs, matches):
             np.testing.assert_array_equal(db.read_matches(ids[i], ids[j]), pair_matches)
         assert db.num_matches() == sum(len(m) for m in matches)
+
+
+def test_the_database_camera_is_colmaps_guess_or_the_known_one_with_its_focal_as_a_prior(
+    tmp_path,
+):
+    names = ["a.png", "b.png"]
+    images = _blank_images(tmp_path / "images", names)
+    features = [_features(10, seed) for seed in range(2)]
+    pairs = sfm.image_pairs(2)
+    matches = sfm.match_pairs(features, pairs)
+    known = sfm.check_camera("PINHOLE", [70, 71, 32.5, 24])
+    for name, camera in [("guess.db", sfm.Camera()), ("known.db", known)]:
+        sfm.write_database(tmp_path / name, images, names, features, pairs, matches, camera)
+    with pycolmap.Database.open(str(tmp_path / "guess.db")) as db:
+        (guess,) = db.read_all_cameras()
+    with pycolmap.Database.open(str(tmp_path / "known.db")) as db:
+        (found,) = db.read_all_cameras()
+    # COLMAP's own guess without EXIF: 1.2 x the longest side, the centre, no distortion.
+    assert guess.model_name == "SIMPLE_RADIAL" and not guess.has_prior_focal_length
+    np.testing.assert_allclose(guess.params, [1.2 * 64, 32, 24, 0])
+    assert found.model_name == "PINHOLE" and found.has_prior_focal_length
+    np.testing.assert_allclose(found.params, [70, 71, 32.5, 24])
+
+
+@pytest.mark.parametrize(
+    "model, params, message",
+    [
+        ("PINHOL", (), "'PINHOL' is not COLMAP's; one of SIMPLE_PINHOLE, PINHOLE,"),
+        ("PINHOLE", (500, 500, 320), "PINHOLE takes 4 finite parameters \\(fx, fy, cx, cy"),
+        ("SIMPLE_RADIAL", (-500, 320, 240, 0), "focal lengths positive\\), got -500.0"),
+        ("PINHOLE", (500, float("nan"), 320, 240), "got 500.0, nan"),
+    ],
+    ids=["unknown-model", "too-few", "negative-focal", "nan"],
+)
+def test_a_camera_colmap_cannot_use_is_refused_naming_what_the_model_takes(model, params, message):
+    with pytest.raises(ValueError, match=message):
+        sfm.check_camera(model, params)
+
+
+def _database_with_geometries(tmp_path, geometries):
+    """A database of three blank images with two-view geometries {(id1, id2): (config, inliers)}."""
+    names = ["a.png", "b.png", "c.png"]
+    images = _blank_images(tmp_path / "images", names)
+    database = tmp_path / "db.db"
+    features = [_features(10, seed) for seed in range(3)]
+    sfm.write_database(database, images, names, features, np.zeros((0, 2), int), [])
+    with pycolmap.Database.open(str(database)) as db:
+        for (id1, id2), (config, count) in geometries.items():
+            geometry = pycolmap.TwoViewGeometry()
+            geometry.config = getattr(pycolmap.TwoViewGeometryConfiguration, config)
+            geometry.inlier_matches = np.stack([np.arange(count)] * 2, axis=1).astype(np.uint32)
+            db.write_two_view_geometry(id1, id2, geometry)
+    return images, database
+
+
+def test_the_mapper_starts_from_the_general_pair_with_most_inliers_never_a_planar_one(tmp_path):
+    geometries = {
+        (1, 2): ("PLANAR_OR_PANORAMIC", 9),
+        (1, 3): ("CALIBRATED", 5),
+        (2, 3): ("UNCALIBRATED", 6),
+    }
+    _, database = _database_with_geometries(tmp_path, geometries)
+    assert sfm.initial_pair(database) == (2, 3)
+    _, planar = _database_with_geometries(tmp_path / "planar", {(1, 2): ("PLANAR", 9)})
+    assert sfm.initial_pair(planar) is None
+
+
+class _Model:
+    def __init__(self, registered, error):
+        self.registered, self.error = registered, error
+
+    def num_reg_images(self):
+        return self.registered
+
+    def compute_mean_reprojection_error(self):
+        return self.error
+
+
+@pytest.mark.parametrize(
+    "from_general, from_colmap, kept, colmap_ran",
+    [
+        ([], [_Model(3, 0.5)], "colmap", True),  # the general start failed
+        ([_Model(2, 0.3)], [_Model(3, 0.5)], "colmap", True),  # more images registered
+        ([_Model(2, 0.3)], [_Model(2, 0.4)], "general", True),  # as many, lower error
+        ([_Model(3, 0.3)], [], "general", False),  # every image: COLMAP's start never runs
+    ],
+)
+def test_when_the_general_start_leaves_images_out_colmaps_own_start_runs_and_the_better_is_kept(
+    tmp_path, monkeypatch, from_general, from_colmap, kept, colmap_ran
+):
+    images, database = _database_with_geometries(tmp_path, {(1, 3): ("CALIBRATED", 5)})
+    starts = []
+
+    def mapping(database, image_dir, folder, options, next_image_callback=None):
+        general = options.init_image_id1 != -1
+        assert options.init_num_trials == 1 or not general  # an unsuitable given pair: one try
+        starts.append((options.init_image_id1, options.init_image_id2))
+        (pathlib.Path(folder) / "0").mkdir(parents=True)
+        (pathlib.Path(folder) / "0" / "from").write_text("general" if general else "colmap")
+        return dict(enumerate(from_general if general else from_colmap))
+
+    monkeypatch.setattr(pycolmap, "incremental_mapping", mapping)
+    models = sfm.map_images(database, images, tmp_path / "sparse")
+    assert starts == [(1, 3), (-1, -1)] if colmap_ran else starts == [(1, 3)]
+    assert models == (from_general if kept == "general" else from_colmap)
+    assert (tmp_path / "sparse" / "0" / "from").read_text() == kept
+    assert sorted(p.name for p in tmp_path.iterdir() if "sparse" in p.name) == ["sparse"]
 
 
 def test_tracks_refuse_the_weaker_match_that_would_put_two_keypoints_of_one_image_in_one():
@@ -210,6 +295,25 @@ def _shifted_views(shifts, size=(96, 128), seed=0):
     ]
 
 
+def test_an_image_whose_matches_could_not_settle_keeps_them_all_and_the_others_only_settled():
+    shifts = np.array([[0.0, 0.0], [1.3, -0.6], [-0.45, 2.2]])
+    greys = _shifted_views(shifts)
+    greys[2] = np.full_like(greys[2], 128.0)  # flat: no patch of view 2 can settle
+    truth = np.random.default_rng(2).uniform(20, 76, (30, 2))
+    features = [
+        Features((truth + shift).astype(np.float32), np.full(30, 1.0 - k / 10), np.zeros(30))
+        for k, shift in enumerate(shifts)
+    ]
+    matches = [np.stack([np.arange(30)] * 2, axis=1)] * 3
+    _, kept, counts = sfm.refine_keypoints(greys, features, sfm.image_pairs(3), matches)
+    assert counts["unchecked_images"] == 1
+    np.testing.assert_array_equal(kept[1], matches[1])  # (0, 2): every match of view 2 kept
+    np.testing.assert_array_equal(kept[2], matches[2])  # (1, 2)
+    # (0, 1): only the matches that settled, which are all but view 1's unlucky few.
+    assert counts["settled_matches"] == len(kept[0]) and 25 <= len(kept[0]) <= 30
+    assert counts["kept_matches"] == len(kept[0]) + 60 and counts["matches"] == 90
+
+
 def test_refinement_moves_keypoints_to_the_anchors_correspondence_and_the_database_holds_them(
     tmp_path,
 ):
@@ -246,7 +350,8 @@ def test_refinement_moves_keypoints_to_the_anchors_correspondence_and_the_databa
     for pair_matches, pair_kept in zip(matches, kept):
         assert set(map(tuple, pair_kept)) <= set(map(tuple, pair_matches)) - {(0, 40)}
         assert len(pair_kept) >= 36
-    assert counts["settled_matches"] == sum(map(len, kept)) and counts["matches"] == 121
+    assert counts["settled_matches"] == counts["kept_matches"] == sum(map(len, kept))
+    assert counts["matches"] == 121 and counts["unchecked_images"] == 0
     np.testing.assert_array_equal(refined[2].keypoints[40], [50.0, 50.0])
     images = tmp_path / "images"
     images.mkdir()

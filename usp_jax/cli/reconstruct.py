@@ -10,7 +10,9 @@ COLMAP writes (``database.db``, models under ``sparse/0``, ``sparse/1``, ...) an
 COLMAP gets only the matches a 1 px RANSAC fundamental matrix keeps (``--epipolar``), with the
 keypoints of each match track moved onto one anchor observation's grey patch
 (``--refine-keypoints``, on by default: ``sfm.refine_keypoints``, one position per keypoint, as
-COLMAP keeps, consistent across the track).
+COLMAP keeps, consistent across the track). The mapper starts from the general pair with most
+inliers, not a planar one (``sfm.initial_pair``). All images share one camera: COLMAP's estimate,
+or a calibrated one (``--camera-model``, ``--camera-params``).
 
 Everything is written into a temporary folder beside DIR, renamed to DIR when the run ends, so a
 failure leaves nothing half-written; DIR must be new, empty or an earlier reconstruct output.
@@ -94,6 +96,28 @@ def add_parser(subparsers) -> None:
         " (default: on)",
     )
     p.add_argument(
+        "--camera-model",
+        default=sfm.Camera().model,
+        metavar="MODEL",
+        help="COLMAP's model of the camera all images share (PINHOLE, OPENCV, ...)",
+    )
+    p.add_argument(
+        "--camera-params",
+        type=_numbers,
+        default=(),
+        metavar="P1,P2,...",
+        help="the known camera in COLMAP's order and pixel convention (PINHOLE: fx,fy,cx,cy,"
+        " with cx, cy OpenCV's plus 0.5), held fixed unless --refine-intrinsics (default:"
+        " COLMAP estimates it from the EXIF focal length or 1.2 x the longest side)",
+    )
+    p.add_argument(
+        "--refine-intrinsics",
+        action=argparse.BooleanOptionalAction,
+        default=None,
+        help="bundle adjustment refines the focal length and distortion (default: on, off"
+        " with --camera-params)",
+    )
+    p.add_argument(
         "--export-features",
         action="store_true",
         help="also write DIR/features.npz: keypoints (as the database holds them, refined with"
@@ -102,6 +126,16 @@ def add_parser(subparsers) -> None:
     p.add_argument("--no-progress", action="store_true", help="no progress bars")
     arguments.add_upsample(p)
     arguments.add_any_scale(p)
+
+
+def _numbers(text: str) -> tuple[float, ...]:
+    """``P1,P2,...`` as floats (``--camera-params``)."""
+    try:
+        return tuple(float(part) for part in text.split(","))
+    except ValueError:
+        raise argparse.ArgumentTypeError(
+            f"expected numbers separated by commas, got {text!r}"
+        ) from None
 
 
 def check_out(out: pathlib.Path) -> None:
@@ -243,7 +277,7 @@ def _stages(args, detector, work: pathlib.Path, source: pathlib.Path, summary: d
     start = time.perf_counter()
     database = work / "database.db"
     with tqdm(total=2, desc="database, verify", disable=quiet, leave=False) as bar:
-        sfm.write_database(database, image_dir, names, features, pairs, kept)
+        sfm.write_database(database, image_dir, names, features, pairs, kept, args.camera)
         bar.update()
         sfm.verify(database)
         bar.update()
@@ -251,7 +285,8 @@ def _stages(args, detector, work: pathlib.Path, source: pathlib.Path, summary: d
     summary["verified_pairs"] = sfm.verified_pairs(database)
     start = time.perf_counter()
     with tqdm(total=len(names), desc="map", unit="image", disable=quiet, leave=False) as bar:
-        models = sfm.map_images(database, image_dir, work / "sparse", bar.update)
+        fixed = not args.refine_intrinsics
+        models = sfm.map_images(database, image_dir, work / "sparse", bar.update, fixed)
     seconds["map"] = time.perf_counter() - start
     return models
 
@@ -259,6 +294,8 @@ def _stages(args, detector, work: pathlib.Path, source: pathlib.Path, summary: d
 def _finish(work: pathlib.Path, out: pathlib.Path, models: list, summary: dict) -> None:
     """The figures and summary into ``work``, then ``work`` renamed to ``out``."""
     summary["models"] = [sfm.model_summary(model) for model in models]
+    if models:  # the camera as bundle adjustment left it (COLMAP's order and convention)
+        summary["camera"]["found"] = list(next(iter(models[0].cameras.values())).params)
     summary.update(summary["models"][0] if models else {})
     if models:
         models[0].export_PLY(str(work / "points.ply"))
@@ -277,6 +314,11 @@ def run(args) -> int:
     if not source.exists():
         raise FileNotFoundError(f"{args.images} does not exist (a folder of photos or a video)")
     check_out(out)
+    args.camera = sfm.check_camera(args.camera_model, args.camera_params)
+    if args.refine_intrinsics is None:  # a known camera is a calibrated one
+        args.refine_intrinsics = not args.camera.params
+    if not (args.refine_intrinsics or args.camera.params):
+        raise ValueError("--no-refine-intrinsics needs the camera: give --camera-params")
     if not args.verbose:
         pycolmap.logging.minloglevel = 3  # its failures come back as our one line
     detector = _detector(args)
@@ -284,6 +326,8 @@ def run(args) -> int:
     summary["detector"] = {"weights": args.weights or args.checkpoint, "top": args.top}
     summary["refine_keypoints"] = args.refine_keypoints
     summary["epipolar"] = args.epipolar
+    summary["camera"] = {"model": args.camera.model, "params": list(args.camera.params)}
+    summary["camera"]["refined"] = args.refine_intrinsics
     out.parent.mkdir(parents=True, exist_ok=True)
     work = out.with_name(f".{out.name}.partial")
     shutil.rmtree(work, ignore_errors=True)

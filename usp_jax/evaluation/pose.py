@@ -125,18 +125,46 @@ def read_pairs(folder: str | Path) -> list[PosePair]:
     ]
 
 
-def angle_between(a: np.ndarray, b: np.ndarray) -> float:
-    """The angle between two nonzero vectors, degrees."""
-    cosine = np.dot(a, b) / (np.linalg.norm(a) * np.linalg.norm(b))
-    return math.degrees(math.acos(float(np.clip(cosine, -1.0, 1.0))))
+def rotation_angle(rotations: np.ndarray) -> np.ndarray:
+    """Angle in degrees of rotation matrices ``[..., 3, 3]``: arccos((trace - 1) / 2)."""
+    cosine = (np.trace(rotations, axis1=-2, axis2=-1) - 1) / 2
+    return np.degrees(np.arccos(np.clip(cosine, -1.0, 1.0)))
+
+
+def direction_angle(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Angle in degrees between vectors ``[..., 3]`` (0 to 180; a zero vector gives 90)."""
+    norms = np.linalg.norm(a, axis=-1) * np.linalg.norm(b, axis=-1)
+    cosine = np.sum(a * b, axis=-1) / np.where(norms > 0, norms, np.inf)
+    return np.degrees(np.arccos(np.clip(cosine, -1.0, 1.0)))
+
+
+def relative_pose_errors(
+    rotations: np.ndarray, centres: np.ndarray, true_rotations: np.ndarray, true_centres: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Errors over every pair i < j of cameras: world-to-camera rotations ``[N, 3, 3]`` and
+    camera centres ``[N, 3]``, estimated and true. Returns (relative-rotation errors, the angle
+    between R_j R_i^T estimated and true; translation-direction errors, the angle between
+    R_j (c_i - c_j) estimated and true), degrees ``[N (N - 1) / 2]`` each. Both ignore the
+    model's gauge (its world frame and scale)."""
+    i, j = np.triu_indices(len(rotations), k=1)
+
+    def relative(r, c):
+        turn = r[j] @ np.swapaxes(r[i], -1, -2)
+        return turn, np.einsum("pab,pb->pa", r[j], c[i] - c[j])
+
+    turn, direction = relative(np.asarray(rotations), np.asarray(centres))
+    true_turn, true_direction = relative(np.asarray(true_rotations), np.asarray(true_centres))
+    return (
+        rotation_angle(np.swapaxes(turn, -1, -2) @ true_turn),
+        direction_angle(direction, true_direction),
+    )
 
 
 def pose_errors(R_true, t_true, R, t) -> tuple[float, float]:
     """(rotation error, translation direction error), degrees: the angle of ``R_true^T R`` and
     the angle between ``t_true`` and ``t`` with the sign ambiguity folded (module docstring)."""
-    turn = np.clip((np.trace(np.asarray(R_true).T @ R) - 1) / 2, -1.0, 1.0)
-    direction = angle_between(np.ravel(t_true), np.ravel(t))
-    return math.degrees(math.acos(float(turn))), min(direction, 180.0 - direction)
+    direction = float(direction_angle(np.ravel(t_true), np.ravel(t)))
+    return float(rotation_angle(np.asarray(R_true).T @ R)), min(direction, 180.0 - direction)
 
 
 def estimate_pose(
