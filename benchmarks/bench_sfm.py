@@ -168,7 +168,7 @@ def report(name, models, seconds, poses) -> dict:
     if models:
         row.update(sfm.model_summary(models[0]))
         # The shared camera's focal length as bundle adjustment left it (true: 554.3 px).
-        row["focal_px"] = float(next(iter(models[0].cameras.values())).params[0])
+        row["focal_px"] = sfm.camera_params(models[0])[0]
         if poses:
             row.update(sfm.pose_errors(models[0], poses))
     return row

@@ -295,7 +295,7 @@ def _finish(work: pathlib.Path, out: pathlib.Path, models: list, summary: dict) 
     """The figures and summary into ``work``, then ``work`` renamed to ``out``."""
     summary["models"] = [sfm.model_summary(model) for model in models]
     if models:  # the camera as bundle adjustment left it (COLMAP's order and convention)
-        summary["camera"]["found"] = list(next(iter(models[0].cameras.values())).params)
+        summary["camera"]["found"] = sfm.camera_params(models[0])
     summary.update(summary["models"][0] if models else {})
     if models:
         models[0].export_PLY(str(work / "points.ply"))

@@ -186,7 +186,7 @@ def map_images(
     models = mapped(sparse_dir, pair)
     with pycolmap.Database.open(str(database)) as db:
         images = db.num_images()
-    if pair is None or (models and models[0].num_reg_images() == images):
+    if pair is None or rank(models)[0] == images:
         return models
     fallback = sparse_dir.with_name(sparse_dir.name + ".colmap-start")
     others = mapped(fallback, None)
@@ -207,6 +207,12 @@ def model_summary(model) -> dict:
         "mean_track_length": float(model.compute_mean_track_length()),
         "mean_reprojection_error": float(model.compute_mean_reprojection_error()),
     }
+
+
+def camera_params(model) -> list[float]:
+    """The parameters of the camera a model's images share (COLMAP's order and convention), as
+    bundle adjustment left them."""
+    return [float(p) for p in next(iter(model.cameras.values())).params]
 
 
 def registered_poses(model) -> dict[str, tuple[np.ndarray, np.ndarray]]:

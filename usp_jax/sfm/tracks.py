@@ -69,8 +69,9 @@ def detect_images(
 def match_pairs(
     features: Sequence[Features], pairs: np.ndarray, progress: Callable = iter, ratio: float = RATIO
 ) -> list[np.ndarray]:
-    """Mutual nearest neighbours in descriptor space (``inference.matching``, L2: what ``match`` pairs) of each pair:
-    int ``[K, 2]`` (index into image i's keypoints, into image j's) per row of ``pairs``."""
+    """Mutual nearest neighbours in descriptor space (``inference.matching``, L2: what ``match``
+    pairs) of each pair: int ``[K, 2]`` (index into image i's keypoints, into image j's) per row
+    of ``pairs``."""
     return [
         mutual_nearest_neighbours(features[i].descriptors, features[j].descriptors, ratio)
         for i, j in progress(pairs)
@@ -281,7 +282,9 @@ def refine_keypoints(
     kept = [m if unchecked[[i, j]].any() else m[ok] for (i, j), m, ok in zip(pairs, matches, both)]
     total = lambda found: int(sum(len(m) for m in found))
     counts = dict(tracks=int(track.max(initial=-1) + 1), observations=int(todo.sum()))
-    counts.update(moved=moved, matches=total(matches), settled_matches=int(sum(map(sum, both))))
+    counts.update(
+        moved=moved, matches=total(matches), settled_matches=sum(int(ok.sum()) for ok in both)
+    )
     counts.update(unchecked_images=int(unchecked.sum()), kept_matches=total(kept))
     features = [f._replace(keypoints=k) for f, k in zip(features, refined)]
     return Refinement(features, kept, counts)
