@@ -4,7 +4,7 @@ import cv2
 import numpy as np
 import pytest
 
-from usp_jax.inference.match_refinement import refine_matches
+from usp_jax.inference.match_refinement import cut_templates, match_templates, refine_matches
 
 SHIFT = np.array([1.3, -0.6])
 
@@ -171,3 +171,29 @@ def test_the_fast_float32_path_computes_what_the_float64_definition_does():
     polished, ok = match_refinement.affine_polish(image, image2, edge - 1.2, edge, 5, 1)
     expected = _reference_polish(image, image2, edge - 1.2, edge, 5, 1)
     assert ok.all() and np.abs(polished - expected).max() < 0.01
+
+
+def test_templates_of_two_images_matched_into_one_in_one_call_refine_as_pair_by_pair():
+    image2 = textured(seed=3)
+    first, second = shifted(image2, -SHIFT), shifted(image2, SHIFT[::-1])
+    points = grid_points()
+    off = np.random.default_rng(4).choice([-1.0, 1.0], size=points.shape)
+    given = [(first, points - SHIFT + off), (second, points + SHIFT[::-1] + off)]
+    given.append((first[:10, :10], points[:5]))  # smaller than a template: nothing usable
+    cut = [cut_templates(grey, points1) for grey, points1 in given]
+    assert not cut[2][1].any() and not cut[2][0].any()
+    refined, moved = match_templates(
+        np.concatenate([template for template, _ in cut]),
+        np.concatenate([usable for _, usable in cut]),
+        image2,
+        np.concatenate([points, points, points[:5]]),
+        affine_steps=2,
+    )
+    offsets = np.cumsum([0] + [len(points1) for _, points1 in given])
+    for (grey, points1), lo, hi in zip(given, offsets[:-1], offsets[1:]):
+        alone, alone_moved = refine_matches(
+            grey, image2, points1, points[: hi - lo], affine_steps=2
+        )
+        np.testing.assert_array_equal(refined[lo:hi], alone)
+        np.testing.assert_array_equal(moved[lo:hi], alone_moved)
+    assert moved[: offsets[2]].mean() > 0.9 and not moved[offsets[2] :].any()

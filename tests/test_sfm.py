@@ -1,4 +1,4 @@
-"""usp_jax.sfm: COLMAP's pixel convention, the pairs, the matcher, the pose errors of a model and
+"""usp_jax.sfm: COLMAP's pixel convention, the pairs, the pose errors of a model and
 the database, with pycolmap itself as the reference."""
 
 import pathlib
@@ -11,7 +11,7 @@ from scipy.spatial.transform import Rotation
 
 from usp_jax import sfm
 from usp_jax.inference.features import Features
-from usp_jax.inference.matching import mutual_nearest_neighbours, nearest_neighbours
+from usp_jax.inference.match_refinement import refine_matches
 
 
 def test_colmap_keypoints_are_ours_plus_half_a_pixel_as_colmap_projects_the_optical_axis():
@@ -32,24 +32,6 @@ def test_image_pairs_every_pair_for_photos_and_a_window_for_video():
     np.testing.assert_array_equal(
         sfm.image_pairs(4, window=2), [[0, 1], [0, 2], [1, 2], [1, 3], [2, 3]]
     )
-
-
-def test_mutual_nearest_neighbours_equal_opencvs_cross_checked_brute_force():
-    rng = np.random.default_rng(0)
-    first = rng.standard_normal((300, 32)).astype(np.float32)
-    second = first[rng.permutation(300)][:250] + rng.normal(0, 1.5, (250, 32)).astype(np.float32)
-    ours = mutual_nearest_neighbours(first, second)
-    opencv = nearest_neighbours(first, second, cv2.NORM_L2, cross_check=True)
-    assert 50 < len(ours) < 250  # some, not all, are mutual
-    np.testing.assert_array_equal(ours, opencv[np.argsort(opencv[:, 0])])
-    assert mutual_nearest_neighbours(first[:0], second).shape == (0, 2)
-
-
-def test_the_ratio_test_keeps_a_match_whose_nearest_is_closer_than_ratio_times_the_second():
-    first = np.array([[0.0, 0.0]], np.float32)
-    second = np.array([[1.0, 0.0], [0.0, 1.5]], np.float32)  # distances 1 and 1.5
-    np.testing.assert_array_equal(mutual_nearest_neighbours(first, second, 0.7), [[0, 0]])
-    assert len(mutual_nearest_neighbours(first, second, 0.6)) == 0  # 1 >= 0.6 * 1.5
 
 
 def test_mixed_sizes_are_refused_naming_both_images_and_the_shared_camera():
@@ -185,11 +167,15 @@ def test_when_the_general_start_leaves_images_out_colmaps_own_start_runs_and_the
         starts.append((options.init_image_id1, options.init_image_id2))
         (pathlib.Path(folder) / "0").mkdir(parents=True)
         (pathlib.Path(folder) / "0" / "from").write_text("general" if general else "colmap")
+        for _ in range(2):  # two images registered in each run
+            next_image_callback()
         return dict(enumerate(from_general if general else from_colmap))
 
     monkeypatch.setattr(pycolmap, "incremental_mapping", mapping)
-    models = sfm.map_images(database, images, tmp_path / "sparse")
+    counts = []
+    models = sfm.map_images(database, images, tmp_path / "sparse", counts.append)
     assert starts == [(1, 3), (-1, -1)] if colmap_ran else starts == [(1, 3)]
+    assert counts == ([1, 2, 1, 2] if colmap_ran else [1, 2])  # a progress bar starts over
     assert models == (from_general if kept == "general" else from_colmap)
     assert (tmp_path / "sparse" / "0" / "from").read_text() == kept
     assert sorted(p.name for p in tmp_path.iterdir() if "sparse" in p.name) == ["sparse"]
@@ -263,6 +249,12 @@ def test_fundamental_inliers_are_the_matches_a_fundamental_matrix_explains():
         sfm.fundamental_inliers(features, [[0, 1]], matches, None)[0], matches[0]
     )
     assert sfm.fundamental_inliers(features, [[0, 1]], [right[:7]])[0].shape == (0, 2)
+    # Pairs on threads: each pair's own result, in the pairs' order.
+    several = [matches[0], right[:7], right, matches[0][::-1]]
+    threaded = sfm.fundamental_inliers(features, [[0, 1]] * 4, several)
+    for pair_matches, found in zip(several, threaded):
+        one = sfm.fundamental_inliers(features, [[0, 1]], [pair_matches])[0]
+        np.testing.assert_array_equal(found, one)
 
 
 def test_a_pair_opencvs_ransac_asserts_on_gets_no_matches_instead_of_ending_the_run(monkeypatch):
@@ -364,3 +356,40 @@ def test_refinement_moves_keypoints_to_the_anchors_correspondence_and_the_databa
             np.testing.assert_allclose(db.read_keypoints(image_id)[:, :2], found.keypoints + 0.5)
         for (i, j), pair_kept in zip(pairs, kept):
             np.testing.assert_array_equal(db.read_matches(ids[i], ids[j]), pair_kept)
+
+
+@pytest.mark.parametrize("threads", [1, 3])
+def test_an_image_whose_tracks_follow_two_anchor_images_refines_as_pair_by_pair(
+    monkeypatch, threads
+):
+    monkeypatch.setattr(sfm.tracks, "THREADS", threads)
+    shifts = np.array([[0.0, 0.0], [1.3, -0.6], [-0.45, 2.2]])
+    greys = _shifted_views(shifts)
+    rng = np.random.default_rng(5)
+    truth = rng.uniform(20, 76, (40, 2))
+    scores = np.full((3, 40), 0.5, np.float32)
+    scores[0, :20] = scores[1, 20:] = 1.0  # view 0 anchors tracks 0-19, view 1 tracks 20-39
+    features = [
+        Features(
+            (truth + shift + rng.choice([-0.7, 0.7], (40, 2))).astype(np.float32), s, np.zeros(40)
+        )
+        for shift, s in zip(shifts, scores)
+    ]
+    matches = [np.stack([np.arange(40)] * 2, axis=1)] * 3
+    refined, _, counts = sfm.refine_keypoints(greys, features, sfm.image_pairs(3), matches)
+    expected = [f.keypoints.copy() for f in features]
+    for anchor, view, tracks in ((0, 1, slice(0, 20)), (0, 2, slice(0, 20))) + (
+        (1, 0, slice(20, 40)),
+        (1, 2, slice(20, 40)),
+    ):
+        points, ok = refine_matches(
+            greys[anchor],
+            greys[view],
+            features[anchor].keypoints[tracks],
+            features[view].keypoints[tracks],
+            affine_steps=sfm.tracks.AFFINE_STEPS,
+        )
+        expected[view][np.arange(40)[tracks][ok]] = points[ok]
+    for found, want in zip(refined, expected):
+        np.testing.assert_array_equal(found.keypoints, want)
+    assert counts["observations"] == 80 and counts["moved"] >= 72

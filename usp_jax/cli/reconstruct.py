@@ -227,7 +227,7 @@ def _refine(args, image_dir, names, features, pairs, matches, summary) -> tuple[
     if not args.refine_keypoints:
         return features, matches
     start = time.perf_counter()
-    bar = lambda p: tqdm(p, desc="refine", unit="pair", disable=args.no_progress, leave=False)
+    bar = lambda p: tqdm(p, desc="refine", unit="image", disable=args.no_progress, leave=False)
     features, matches, summary["refinement"] = sfm.refine_keypoints(
         _Greys(image_dir, names), features, pairs, matches, progress=bar
     )
@@ -286,7 +286,9 @@ def _stages(args, detector, work: pathlib.Path, source: pathlib.Path, summary: d
     start = time.perf_counter()
     with tqdm(total=len(names), desc="map", unit="image", disable=quiet, leave=False) as bar:
         fixed = not args.refine_intrinsics
-        models = sfm.map_images(database, image_dir, work / "sparse", bar.update, fixed)
+        # The count, not a step: a second mapper run (COLMAP's own start) counts again.
+        shown = lambda count: bar.update(count - bar.n)
+        models = sfm.map_images(database, image_dir, work / "sparse", shown, fixed)
     seconds["map"] = time.perf_counter() - start
     return models
 

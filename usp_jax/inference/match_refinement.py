@@ -101,9 +101,9 @@ def _box_sums(values: np.ndarray, side: int) -> np.ndarray:
 
 
 def ncc_scores(
-    grey1: np.ndarray,
+    grey1: np.ndarray | None,
     grey2: np.ndarray,
-    points1: np.ndarray,
+    points1: np.ndarray | None,
     centres2: np.ndarray,
     radius: int,
     search: int,
@@ -113,7 +113,7 @@ def ncc_scores(
     standard deviation [M]) of the templates of image 1 around ``points1`` [M, 2] against
     image 2's patches centred on the whole pixels ``centres2`` int [M, 2] plus each offset.
     Every template and window must lie inside its image. ``template``: :func:`templates` of
-    ``points1``, when the caller has it already."""
+    ``points1``, when the caller has it already (grey1 and points1 are then not read)."""
     side, width = 2 * radius + 1, 2 * search + 1
     if template is None:
         template = templates(np.asarray(grey1, np.float32), points1, radius)
@@ -203,9 +203,9 @@ def _sample_with_gradient(
 
 
 def affine_polish(
-    grey1: np.ndarray,
+    grey1: np.ndarray | None,
     grey2: np.ndarray,
-    points1: np.ndarray,
+    points1: np.ndarray | None,
     points2: np.ndarray,
     radius: int,
     steps: int,
@@ -215,7 +215,8 @@ def affine_polish(
     steps of an affine Lucas-Kanade fit of image 1's template around ``points1`` [K, 2] (module
     docstring). Each step moves a point by at most half a pixel and its linear map by at most
     0.1 per entry; ok is False where a warped window left image 2 or a result is not finite.
-    ``template``: :func:`templates` of ``points1``, when the caller has it already.
+    ``template``: :func:`templates` of ``points1``, when the caller has it already (grey1 and
+    points1 are then not read).
 
     Image 2 and its gradient are read only where the warped windows fall (twelve whole pixels
     per sample, :func:`_sample_with_gradient`), in float32; the 6 x 6 systems are solved in
@@ -290,31 +291,69 @@ def refine_matches(
     given.
     """
     grey1 = np.asarray(grey1, np.float32)
-    grey2 = np.asarray(grey2, np.float32)
     points1 = np.asarray(points1, np.float64).reshape(-1, 2)
-    points2 = np.asarray(points2, np.float64).reshape(-1, 2)
-    if grey1.ndim != 2 or grey2.ndim != 2 or len(points1) != len(points2):
+    if grey1.ndim != 2 or len(points1) != len(np.asarray(points2).reshape(-1, 2)):
         raise ValueError(
             f"need grey images [H, W] and points [M, 2] of equal M, got images {grey1.shape},"
-            f" {grey2.shape} and points {points1.shape}, {points2.shape}"
+            f" {np.shape(grey2)} and points {points1.shape}, {np.shape(points2)}"
         )
-    if radius < 1 or search < 1 or affine_steps < 0:
+    if radius < 1:
+        raise ValueError(f"radius must be at least 1, got {radius}")
+    template, usable = cut_templates(grey1, points1, radius)
+    return match_templates(template, usable, grey2, points2, search, min_ncc, affine_steps)
+
+
+def cut_templates(
+    grey: np.ndarray, points: np.ndarray, radius: int = RADIUS
+) -> tuple[np.ndarray, np.ndarray]:
+    """(template float32 [M, side, side], usable bool [M]): :func:`templates` of image 1's
+    points [M, 2] (``grey`` float32 [H, W]) where they lie ``radius`` px inside it (usable),
+    zeros elsewhere."""
+    points = np.asarray(points, np.float64).reshape(-1, 2)
+    usable = _inside(points, grey.shape, radius + 1e-9)
+    template = np.zeros((len(points), 2 * radius + 1, 2 * radius + 1), np.float32)
+    if usable.any():  # an image smaller than a template has none
+        template[usable] = templates(grey, points[usable], radius)
+    return template, usable
+
+
+def match_templates(
+    template: np.ndarray,
+    usable: np.ndarray,
+    grey2: np.ndarray,
+    points2: np.ndarray,
+    search: int = SEARCH,
+    min_ncc: float = MIN_NCC,
+    affine_steps: int = 0,
+) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`refine_matches` once image 1's side is cut (:func:`cut_templates`: ``template``
+    [M, side, side], ``usable`` [M]), so that the matches of several images into one image 2
+    are refined in one call (``sfm.refine_keypoints``: a call per image pair spent most of its
+    time in NumPy's per-call overhead). The rest as :func:`refine_matches`."""
+    grey2 = np.asarray(grey2, np.float32)
+    points2 = np.asarray(points2, np.float64).reshape(-1, 2)
+    radius = (template.shape[-1] - 1) // 2
+    if grey2.ndim != 2 or len(template) != len(points2) or len(usable) != len(points2):
         raise ValueError(
-            f"radius and search must be at least 1 and affine_steps at least 0, got {radius},"
-            f" {search}, {affine_steps}"
+            f"need a grey image [H, W] and templates, usable flags and points of equal M, got"
+            f" image {grey2.shape}, {template.shape}, {np.shape(usable)} and {points2.shape}"
+        )
+    if search < 1 or affine_steps < 0:
+        raise ValueError(
+            f"search must be at least 1 and affine_steps at least 0, got {search}, {affine_steps}"
         )
     refined = points2.copy()
     moved = np.zeros(len(points2), bool)
     centres = np.round(np.where(np.isfinite(points2), points2, 0.0))
-    usable = _inside(points1, grey1.shape, radius + 1e-9) & _inside(
+    usable = np.asarray(usable, bool) & _inside(
         np.where(np.isfinite(points2), centres, np.nan), grey2.shape, radius + search
     )
     index = np.flatnonzero(usable)
     if index.size == 0:
         return refined.astype(np.float32), moved
-    template = templates(grey1, points1[index], radius)
+    template = template[index]
     ncc, spread = ncc_scores(
-        grey1, grey2, points1[index], centres[index].astype(np.int64), radius, search, template
+        None, grey2, None, centres[index].astype(np.int64), radius, search, template
     )
     width = 2 * search + 1
     best = ncc.reshape(len(index), -1).argmax(axis=1)
@@ -330,7 +369,7 @@ def refine_matches(
     peaks = centres[index[accept]] + whole[accept] + offset[accept]
     if affine_steps > 0 and len(peaks):
         polished, ok = affine_polish(
-            grey1, grey2, points1[index[accept]], peaks, radius, affine_steps, template[accept]
+            None, grey2, None, peaks, radius, affine_steps, template[accept]
         )
         ok &= np.linalg.norm(polished - peaks, axis=1) <= 1.0
         peaks[ok] = polished[ok]

@@ -7,6 +7,7 @@ COLMAP puts the centre of the top-left pixel at (0.5, 0.5); ours sits at (0, 0)
 
 from __future__ import annotations
 
+import itertools
 import pathlib
 import shutil
 from collections.abc import Callable, Sequence
@@ -144,13 +145,14 @@ def map_images(
     database: str | pathlib.Path,
     image_dir: str | pathlib.Path,
     sparse_dir: str | pathlib.Path,
-    on_image: Callable[[], object] | None = None,
+    on_image: Callable[[int], object] | None = None,
     fixed_intrinsics: bool = False,
     general_start: bool = True,
 ) -> list:
     """COLMAP's incremental mapper: the models it finds, largest first, written as COLMAP
     writes them (``sparse_dir/0``, ``sparse_dir/1``, ...; none when no pair could start one).
-    ``image_dir`` gives the points' colours; ``on_image`` is called at each image registered.
+    ``image_dir`` gives the points' colours; ``on_image(count)`` is called at each image
+    registered, with the count of the mapper's run so far (it starts over when a second run does).
     ``fixed_intrinsics`` holds the camera as the database has it (a calibrated camera): bundle
     adjustment refines poses and points only.
 
@@ -170,8 +172,13 @@ def map_images(
             options.init_image_id1, options.init_image_id2 = pair
             options.init_num_trials = 1
         folder.mkdir(parents=True, exist_ok=True)
+        registered = itertools.count(1)
         models = pycolmap.incremental_mapping(
-            str(database), str(image_dir), str(folder), options, next_image_callback=on_image
+            str(database),
+            str(image_dir),
+            str(folder),
+            options,
+            next_image_callback=on_image and (lambda: on_image(next(registered))),
         )
         return [models[k] for k in sorted(models)]
 
