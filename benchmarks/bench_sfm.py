@@ -12,7 +12,8 @@ those, with each track's keypoints moved onto its anchor's patch and only the ma
 keypoints that settled so (``sfm.refine_keypoints``: reconstruct's default). All rows share one
 detection. ``--repeats K`` runs each of our rows K times on that detection
 (rows with ``repeat`` 0 to K - 1): COLMAP's RANSAC and mapper are random, and the rotation error
-of one run can differ several-fold from the next's.
+of one run can differ several-fold from the next's. ``--no-detector-refine`` drops the
+network's learned sub-pixel refinement of its points (reconstruct keeps it).
 
 Reported per pipeline: registered images, 3-D points, mean track length, mean reprojection
 error, wall time per stage (ours after one warm-up detection; its compile time beside; the
@@ -223,6 +224,12 @@ def _parser() -> argparse.ArgumentParser:
         help="ours: COLMAP's mapper chooses its own first pair (reconstruct's choice before"
         " sfm.initial_pair; SIFT's rows always do)",
     )
+    p.add_argument(
+        "--detector-refine",
+        action=argparse.BooleanOptionalAction,
+        default=True,
+        help="ours: the network's learned sub-pixel refinement of its points (on in reconstruct)",
+    )
     p.add_argument("--repeats", type=int, default=1, help="runs of each of our rows")
     p.add_argument("--json", help="write the rows here")
     return p
@@ -249,7 +256,7 @@ def main() -> None:
         poses = {names[0]: (np.eye(3), np.zeros(3)), names[1]: (np.eye(3), np.array([1.0, 0, 0]))}
     start = time.perf_counter()
     detector = Detector.pretrained(
-        args.weights, top_n=args.top, max_side=args.max_side, refine=True
+        args.weights, top_n=args.top, max_side=args.max_side, refine=args.detector_refine
     )
     detector.detect(read_image(images / names[0]))  # compiles, outside the timed stages
     compile_s = time.perf_counter() - start
