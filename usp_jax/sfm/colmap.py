@@ -122,9 +122,17 @@ def verified_pairs(database: str | pathlib.Path) -> int:
         return int(db.num_verified_image_pairs())
 
 
-def initial_pair(database: str | pathlib.Path) -> tuple[int, int] | None:
-    """The image ids of the verified pair with the most inlier matches whose two-view geometry
-    COLMAP found general (CALIBRATED or UNCALIBRATED), not planar or panoramic; None if none.
+#: The general pairs :func:`map_images` tries to start from, most inliers first, before
+#: COLMAP's own choice: COLMAP refuses a pair seen from too close together (its triangulation
+#: angle too small, as adjacent frames of a path can be), at little cost. On rendered path 4 the
+#: first pair was refused in every run, and COLMAP's own start then kept 2 images in 2 of 6.
+START_TRIES = 3
+
+
+def initial_pairs(database: str | pathlib.Path, count: int = START_TRIES) -> list[tuple[int, int]]:
+    """The image ids of the ``count`` verified pairs with the most inlier matches whose two-view
+    geometry COLMAP found general (CALIBRATED or UNCALIBRATED), not planar or panoramic, most
+    first.
 
     Why: COLMAP may start from a PLANAR_OR_PANORAMIC pair, whose pose a homography fixes only up
     to a two-fold ambiguity. With our features, which lie on fewer surfaces than SIFT's, that
@@ -133,12 +141,18 @@ def initial_pair(database: str | pathlib.Path) -> tuple[int, int] | None:
     pycolmap = load_pycolmap()
     general = {pycolmap.TwoViewGeometryConfiguration.CALIBRATED}
     general.add(pycolmap.TwoViewGeometryConfiguration.UNCALIBRATED)
-    best, pair = 0, None
+    found = []
     with pycolmap.Database.open(str(database)) as db:
         for pair_id, geometry in zip(*db.read_two_view_geometries()):
-            if geometry.config in general and len(geometry.inlier_matches) > best:
-                best, pair = len(geometry.inlier_matches), pycolmap.pair_id_to_image_pair(pair_id)
-    return None if pair is None else (int(pair[0]), int(pair[1]))
+            if geometry.config in general:
+                first, second = pycolmap.pair_id_to_image_pair(pair_id)
+                found.append((-len(geometry.inlier_matches), int(first), int(second)))
+    return [(first, second) for _, first, second in sorted(found)[:count]]
+
+
+def initial_pair(database: str | pathlib.Path) -> tuple[int, int] | None:
+    """The first of :func:`initial_pairs`; None if there is none."""
+    return next(iter(initial_pairs(database, 1)), None)
 
 
 def map_images(
@@ -149,17 +163,18 @@ def map_images(
     fixed_intrinsics: bool = False,
     general_start: bool = True,
 ) -> list:
-    """COLMAP's incremental mapper: the models it finds, largest first, written as COLMAP
-    writes them (``sparse_dir/0``, ``sparse_dir/1``, ...; none when no pair could start one).
+    """COLMAP's incremental mapper: the models it finds, most registered images first, written
+    as COLMAP writes them and numbered in that order (``sparse_dir/0`` the largest,
+    ``sparse_dir/1``, ...; none when no pair could start one).
     ``image_dir`` gives the points' colours; ``on_image(count)`` is called at each image
     registered, with the count of the mapper's run so far (it starts over when a second run does).
     ``fixed_intrinsics`` holds the camera as the database has it (a calibrated camera): bundle
     adjustment refines poses and points only.
 
-    With ``general_start`` the mapper starts from :func:`initial_pair`; when that start fails
-    or leaves images out, COLMAP's own choice of start runs too, and the run whose largest
-    model registers more images, then with the lower mean reprojection error, is kept.
-    Without, COLMAP chooses alone (its default)."""
+    With ``general_start`` the mapper starts from each of :func:`initial_pairs` in turn, then
+    from COLMAP's own choice, until a run registers every image; the run whose largest model
+    registers most images, then with the lower mean reprojection error, is kept. Without,
+    COLMAP chooses alone (its default)."""
     pycolmap = load_pycolmap()
     sparse_dir = pathlib.Path(sparse_dir)
 
@@ -180,7 +195,17 @@ def map_images(
             options,
             next_image_callback=on_image and (lambda: on_image(next(registered))),
         )
-        return [models[k] for k in sorted(models)]
+        # COLMAP numbers its models in the order it built them, not by size: a later start can
+        # register more (rendered path 4: 3, 8, then 12 images). Renumbered largest first.
+        order = sorted(sorted(models), key=lambda k: -models[k].num_reg_images())
+        written = [(folder / str(k), folder / f"{new}.sorting") for new, k in enumerate(order)]
+        for old, temporary in written:
+            if old.is_dir():
+                old.rename(temporary)
+        for new, (_, temporary) in enumerate(written):
+            if temporary.is_dir():
+                temporary.rename(folder / str(new))
+        return [models[k] for k in order]
 
     def rank(models: list) -> tuple[int, float]:
         return (
@@ -189,20 +214,27 @@ def map_images(
             else (0, 0.0)
         )
 
-    pair = initial_pair(database) if general_start else None
-    models = mapped(sparse_dir, pair)
+    if sparse_dir.exists() and any(sparse_dir.iterdir()):
+        raise ValueError(f"{sparse_dir} holds something already: map into a new or empty folder")
     with pycolmap.Database.open(str(database)) as db:
         images = db.num_images()
-    if pair is None or rank(models)[0] == images:
-        return models
-    fallback = sparse_dir.with_name(sparse_dir.name + ".colmap-start")
-    others = mapped(fallback, None)
-    if rank(others) > rank(models):
-        shutil.rmtree(sparse_dir)
-        fallback.rename(sparse_dir)
-        return others
-    shutil.rmtree(fallback)
-    return models
+    starts = [*initial_pairs(database), None] if general_start else [None]
+    best, kept = [], None
+    for index, pair in enumerate(starts):
+        folder = sparse_dir.with_name(f"{sparse_dir.name}.start{index}")
+        models = mapped(folder, pair)
+        if kept is None or rank(models) > rank(best):
+            if kept is not None:
+                shutil.rmtree(kept)
+            best, kept = models, folder
+        else:
+            shutil.rmtree(folder)
+        if rank(best)[0] == images:
+            break
+    if sparse_dir.exists():
+        sparse_dir.rmdir()
+    kept.rename(sparse_dir)
+    return best
 
 
 def model_summary(model) -> dict:
