@@ -57,7 +57,7 @@ PIPELINES = ("raw", "filtered", "refined")
 INTRINSICS = ("estimated", "prior", "known")
 #: ``--intrinsics``' camera, given to SIFT's pipeline and ours, and whether it is held fixed.
 CAMERA, FIXED = sfm.Camera(), False
-#: ``--colmap-start``'s opposite: ours start the mapper from ``sfm.initial_pairs``.
+#: ``--colmap-start``'s opposite: ours start the mapper from ``sfm.initial_pair``.
 START = True
 
 

@@ -395,26 +395,6 @@ def test_an_image_whose_tracks_follow_two_anchor_images_refines_as_pair_by_pair(
     assert counts["observations"] == 80 and counts["moved"] >= 72
 
 
-def test_the_mapper_tries_the_next_general_pair_when_colmap_refuses_one(tmp_path, monkeypatch):
-    geometries = {(1, 2): ("CALIBRATED", 9), (2, 3): ("UNCALIBRATED", 7), (1, 3): ("PLANAR", 8)}
-    images, database = _database_with_geometries(tmp_path, geometries)
-    assert sfm.initial_pairs(database) == [(1, 2), (2, 3)]  # most inliers first, never planar
-    outcomes = {(1, 2): [], (2, 3): [_Model(3, 0.4)]}  # COLMAP refuses (1, 2)
-    starts = []
-
-    def mapping(database, image_dir, folder, options, next_image_callback=None):
-        starts.append((options.init_image_id1, options.init_image_id2))
-        (pathlib.Path(folder) / "0").mkdir(parents=True)
-        return dict(enumerate(outcomes[starts[-1]]))
-
-    monkeypatch.setattr(pycolmap, "incremental_mapping", mapping)
-    models = sfm.map_images(database, images, tmp_path / "sparse")
-    assert starts == [(1, 2), (2, 3)] and models == outcomes[(2, 3)]  # every image: done
-    assert sorted(p.name for p in tmp_path.iterdir() if "sparse" in p.name) == ["sparse"]
-    with pytest.raises(ValueError, match="holds something already"):
-        sfm.map_images(database, images, tmp_path / "sparse")
-
-
 def test_models_come_largest_first_in_the_list_and_the_folders_whatever_colmaps_order(
     tmp_path, monkeypatch
 ):

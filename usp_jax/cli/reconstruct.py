@@ -10,8 +10,8 @@ COLMAP writes (``database.db``, models under ``sparse/0``, ``sparse/1``, ...) an
 COLMAP gets only the matches a 1 px RANSAC fundamental matrix keeps (``--epipolar``), with the
 keypoints of each match track moved onto one anchor observation's grey patch
 (``--refine-keypoints``, on by default: ``sfm.refine_keypoints``, one position per keypoint, as
-COLMAP keeps, consistent across the track). The mapper starts from the general pairs with most
-inliers, never a planar one (``sfm.initial_pairs``). All images share one camera: COLMAP's estimate,
+COLMAP keeps, consistent across the track). The mapper starts from the general pair with most
+inliers, not a planar one (``sfm.initial_pair``). All images share one camera: COLMAP's estimate,
 or a calibrated one (``--camera-model``, ``--camera-params``).
 
 Everything is written into a temporary folder beside DIR, renamed to DIR when the run ends, so a

@@ -5,7 +5,7 @@ keypoints and mutual-nearest-neighbour matches in place of COLMAP's SIFT.
 The steps, each a function (``usp-jax reconstruct`` runs them in order): ``detect_images`` ->
 ``match_pairs`` on ``image_pairs`` -> ``fundamental_inliers`` -> ``refine_keypoints``
 (``sfm.tracks``: what COLMAP gets) -> ``write_database`` (with a ``Camera``) -> ``verify`` ->
-``map_images`` from ``initial_pairs`` (``sfm.colmap``), then ``model_summary`` and, where true
+``map_images`` from ``initial_pair`` (``sfm.colmap``), then ``model_summary`` and, where true
 poses are known, ``pose_errors``. ``export_features`` and ``top_view`` (``sfm.outputs``) write
 what other tools and people read. It lives beside the CLI: detection, training and evaluation
 never load its heavy optional dependency.
@@ -14,13 +14,11 @@ never load its heavy optional dependency.
 from usp_jax.sfm.colmap import (
     COLMAP_OFFSET,
     INSTALL,
-    START_TRIES,
     Camera,
     camera_params,
     check_camera,
     colmap_keypoints,
     initial_pair,
-    initial_pairs,
     load_pycolmap,
     map_images,
     model_summary,
@@ -54,7 +52,6 @@ __all__ = [
     "COLMAP_OFFSET",
     "EPIPOLAR_THRESHOLD",
     "INSTALL",
-    "START_TRIES",
     "RATIO",
     "WINDOW",
     "Camera",
@@ -69,7 +66,6 @@ __all__ = [
     "fundamental_inliers",
     "image_pairs",
     "initial_pair",
-    "initial_pairs",
     "keypoint_tracks",
     "load_pycolmap",
     "map_images",

@@ -122,17 +122,9 @@ def verified_pairs(database: str | pathlib.Path) -> int:
         return int(db.num_verified_image_pairs())
 
 
-#: The general pairs :func:`map_images` tries to start from, most inliers first, before
-#: COLMAP's own choice: COLMAP refuses a pair seen from too close together (its triangulation
-#: angle too small, as adjacent frames of a path can be), at little cost. On rendered path 4 the
-#: first pair was refused in every run, and COLMAP's own start then kept 2 images in 2 of 6.
-START_TRIES = 3
-
-
-def initial_pairs(database: str | pathlib.Path, count: int = START_TRIES) -> list[tuple[int, int]]:
-    """The image ids of the ``count`` verified pairs with the most inlier matches whose two-view
-    geometry COLMAP found general (CALIBRATED or UNCALIBRATED), not planar or panoramic, most
-    first.
+def initial_pair(database: str | pathlib.Path) -> tuple[int, int] | None:
+    """The image ids of the verified pair with the most inlier matches whose two-view geometry
+    COLMAP found general (CALIBRATED or UNCALIBRATED), not planar or panoramic; None if none.
 
     Why: COLMAP may start from a PLANAR_OR_PANORAMIC pair, whose pose a homography fixes only up
     to a two-fold ambiguity. With our features, which lie on fewer surfaces than SIFT's, that
@@ -141,18 +133,12 @@ def initial_pairs(database: str | pathlib.Path, count: int = START_TRIES) -> lis
     pycolmap = load_pycolmap()
     general = {pycolmap.TwoViewGeometryConfiguration.CALIBRATED}
     general.add(pycolmap.TwoViewGeometryConfiguration.UNCALIBRATED)
-    found = []
+    best, pair = 0, None
     with pycolmap.Database.open(str(database)) as db:
         for pair_id, geometry in zip(*db.read_two_view_geometries()):
-            if geometry.config in general:
-                first, second = pycolmap.pair_id_to_image_pair(pair_id)
-                found.append((-len(geometry.inlier_matches), int(first), int(second)))
-    return [(first, second) for _, first, second in sorted(found)[:count]]
-
-
-def initial_pair(database: str | pathlib.Path) -> tuple[int, int] | None:
-    """The first of :func:`initial_pairs`; None if there is none."""
-    return next(iter(initial_pairs(database, 1)), None)
+            if geometry.config in general and len(geometry.inlier_matches) > best:
+                best, pair = len(geometry.inlier_matches), pycolmap.pair_id_to_image_pair(pair_id)
+    return None if pair is None else (int(pair[0]), int(pair[1]))
 
 
 def map_images(
@@ -171,10 +157,10 @@ def map_images(
     ``fixed_intrinsics`` holds the camera as the database has it (a calibrated camera): bundle
     adjustment refines poses and points only.
 
-    With ``general_start`` the mapper starts from each of :func:`initial_pairs` in turn, then
-    from COLMAP's own choice, until a run registers every image; the run whose largest model
-    registers most images, then with the lower mean reprojection error, is kept. Without,
-    COLMAP chooses alone (its default)."""
+    With ``general_start`` the mapper starts from :func:`initial_pair`; when that start fails
+    or leaves images out, COLMAP's own choice of start runs too, and the run whose largest
+    model registers more images, then with the lower mean reprojection error, is kept.
+    Without, COLMAP chooses alone (its default)."""
     pycolmap = load_pycolmap()
     sparse_dir = pathlib.Path(sparse_dir)
 
@@ -218,7 +204,8 @@ def map_images(
         raise ValueError(f"{sparse_dir} holds something already: map into a new or empty folder")
     with pycolmap.Database.open(str(database)) as db:
         images = db.num_images()
-    starts = [*initial_pairs(database), None] if general_start else [None]
+    pair = initial_pair(database) if general_start else None
+    starts = [pair, None] if pair is not None else [None]
     best, kept = [], None
     for index, pair in enumerate(starts):
         folder = sparse_dir.with_name(f"{sparse_dir.name}.start{index}")
