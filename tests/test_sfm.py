@@ -412,3 +412,6 @@ def test_models_come_largest_first_in_the_list_and_the_folders_whatever_colmaps_
     assert [m.registered for m in models] == [3, 2, 1]
     written = {p.name: (p / "images").read_text() for p in (tmp_path / "sparse").iterdir()}
     assert written == {"0": "3", "1": "2", "2": "1"}
+    with pytest.raises(ValueError, match="holds something already"):  # never mixes two runs
+        sfm.map_images(database, images, tmp_path / "sparse")
+    assert {p.name for p in (tmp_path / "sparse").iterdir()} == {"0", "1", "2"}

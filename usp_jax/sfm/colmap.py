@@ -141,6 +141,21 @@ def initial_pair(database: str | pathlib.Path) -> tuple[int, int] | None:
     return None if pair is None else (int(pair[0]), int(pair[1]))
 
 
+def _largest_first(models: dict, folder: pathlib.Path) -> list:
+    """COLMAP's models (``{k: Reconstruction}``, written to ``folder/k``), most registered images
+    first, their folders renumbered so. COLMAP numbers them in the order it built them, and a
+    later start can register more (rendered path 4: 3, 8, then 12 images)."""
+    order = sorted(sorted(models), key=lambda k: -models[k].num_reg_images())
+    written = [(folder / str(k), folder / f"{new}.sorting") for new, k in enumerate(order)]
+    for old, temporary in written:
+        if old.is_dir():
+            old.rename(temporary)
+    for new, (_, temporary) in enumerate(written):
+        if temporary.is_dir():
+            temporary.rename(folder / str(new))
+    return [models[k] for k in order]
+
+
 def map_images(
     database: str | pathlib.Path,
     image_dir: str | pathlib.Path,
@@ -181,17 +196,7 @@ def map_images(
             options,
             next_image_callback=on_image and (lambda: on_image(next(registered))),
         )
-        # COLMAP numbers its models in the order it built them, not by size: a later start can
-        # register more (rendered path 4: 3, 8, then 12 images). Renumbered largest first.
-        order = sorted(sorted(models), key=lambda k: -models[k].num_reg_images())
-        written = [(folder / str(k), folder / f"{new}.sorting") for new, k in enumerate(order)]
-        for old, temporary in written:
-            if old.is_dir():
-                old.rename(temporary)
-        for new, (_, temporary) in enumerate(written):
-            if temporary.is_dir():
-                temporary.rename(folder / str(new))
-        return [models[k] for k in order]
+        return _largest_first(models, folder)
 
     def rank(models: list) -> tuple[int, float]:
         return (
