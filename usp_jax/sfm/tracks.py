@@ -13,6 +13,7 @@ from typing import NamedTuple
 
 import numpy as np
 
+from usp_jax.inference.blas_threads import one_blas_thread
 from usp_jax.inference.features import Features
 from usp_jax.inference.match_refinement import cut_templates, match_templates
 from usp_jax.inference.matching import mutual_nearest_neighbours
@@ -36,7 +37,7 @@ MIN_SETTLED_SHARE = 1 / 3
 #: Threads in :func:`fundamental_inliers` (one pair each) and :func:`refine_keypoints` (one
 #: image each): OpenCV's RANSAC and NumPy's large array operations release the GIL. 12 frames on
 #: 2 cores: the filter 0.96 -> 0.47 s, the refinement 0.65 -> 0.43 s, the same results. Matching
-#: is not threaded: its matrix product already uses every core.
+#: (:func:`match_pairs`) too, each pair's matrix product on one BLAS thread (``blas_threads``).
 THREADS = os.cpu_count() or 1
 
 
@@ -87,10 +88,13 @@ def match_pairs(
     """Mutual nearest neighbours in descriptor space (``inference.matching``, L2: what ``match``
     pairs) of each pair: int ``[K, 2]`` (index into image i's keypoints, into image j's) per row
     of ``pairs``."""
-    return [
-        mutual_nearest_neighbours(features[i].descriptors, features[j].descriptors, ratio)
-        for i, j in progress(pairs)
-    ]
+
+    def matched(pair) -> np.ndarray:
+        i, j = pair
+        return mutual_nearest_neighbours(features[i].descriptors, features[j].descriptors, ratio)
+
+    with one_blas_thread:  # for the whole stage, not per pair
+        return _threaded(matched, pairs, progress)
 
 
 def _match_edges(counts: Sequence[int], pairs: np.ndarray, matches: Sequence[np.ndarray]):

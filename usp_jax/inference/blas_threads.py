@@ -1,0 +1,52 @@
+"""NumPy's matrix products on one thread, for matching between compiled detections.
+
+OpenBLAS's worker threads busy-wait for a while after each multi-threaded product before they
+sleep, so the XLA detection that follows a match (the next video frame) finds its cores taken:
+on 2 cores one 1000-point match made the next 480 px detection take 73 ms instead of 38, and
+``track``'s default frame on box.mp4 133 ms instead of 84 (RESULTS.md "Video"). On one thread
+the product itself is slower (1000 x 1000 points: 3.1 -> 4.5 ms), far less than it costs the
+detection; callers that match many pairs run them on threads of their own (``sfm``).
+"""
+
+from __future__ import annotations
+
+import functools
+import threading
+
+import threadpoolctl
+
+
+@functools.cache
+def _controller() -> threadpoolctl.ThreadpoolController:
+    # Scanning the loaded libraries takes ~0.6 ms; NumPy's BLAS is loaded before this runs.
+    return threadpoolctl.ThreadpoolController()
+
+
+class _OneThread:
+    """Context manager: the BLAS libraries on one thread while the main thread is inside it
+    (re-entrant), and as they were once it leaves. From any other thread it changes nothing:
+    OpenBLAS lets such a thread lower its count but not raise it again, so a worker's limit
+    would outlive it. Threads started inside the main thread's block share its limit."""
+
+    def __init__(self):
+        self._inside = 0
+        self._limit = None
+
+    def __enter__(self) -> None:
+        if threading.current_thread() is not threading.main_thread():
+            return
+        if self._inside == 0:
+            self._limit = _controller().limit(limits=1, user_api="blas")
+        self._inside += 1
+
+    def __exit__(self, *exc) -> None:
+        if threading.current_thread() is not threading.main_thread():
+            return
+        self._inside -= 1
+        if self._inside == 0:
+            self._limit.restore_original_limits()
+            self._limit = None
+
+
+#: ``with one_blas_thread: ...`` runs NumPy's matrix products on one thread (module docstring).
+one_blas_thread = _OneThread()
