@@ -106,7 +106,18 @@ WITHOUT_TORCH = (
 @pytest.mark.slow
 def test_bench_inference_runs_where_xfeat_is_not_installed(tmp_path):
     script = ROOT / "benchmarks" / "bench_inference.py"
-    argv = ["--size", "64x96", "--batch", "1", "--rounds", "1", "--block", "1"]
+    argv = [
+        "--size",
+        "64x96",
+        "--batch",
+        "1",
+        "--rounds",
+        "1",
+        "--block",
+        "1",
+        "--ceiling-side",
+        "512",
+    ]
     code = WITHOUT_TORCH + f"runpy.run_path({str(script)!r}, run_name='__main__')"
     out = run(["-c", code, str(script), *argv], tmp_path)
     assert "XFeat: not timed, not installed" in out
