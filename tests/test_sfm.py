@@ -10,6 +10,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from usp_jax import sfm
+from usp_jax.inference import threads as threads_module
 from usp_jax.inference.features import Features
 from usp_jax.inference.match_refinement import refine_matches
 
@@ -362,7 +363,7 @@ def test_refinement_moves_keypoints_to_the_anchors_correspondence_and_the_databa
 def test_an_image_whose_tracks_follow_two_anchor_images_refines_as_pair_by_pair(
     monkeypatch, threads
 ):
-    monkeypatch.setattr(sfm.tracks, "THREADS", threads)
+    monkeypatch.setattr(threads_module, "THREADS", threads)
     shifts = np.array([[0.0, 0.0], [1.3, -0.6], [-0.45, 2.2]])
     greys = _shifted_views(shifts)
     rng = np.random.default_rng(5)

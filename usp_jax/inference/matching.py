@@ -10,8 +10,8 @@ from typing import NamedTuple
 import cv2
 import numpy as np
 
-from usp_jax.inference.blas_threads import one_blas_thread
 from usp_jax.inference.features import Features
+from usp_jax.inference.threads import one_blas_thread
 
 #: RANSAC settings of the protocol for ``cv2.findHomography``.
 RANSAC_THRESHOLD = 3.0
@@ -68,7 +68,7 @@ def _closeness(descriptors1: np.ndarray, descriptors2: np.ndarray) -> np.ndarray
     """float32 ``[N1, N2]``: -|a - b|^2 / 2 of every pair of rows of ``[N1, D]``, ``[N2, D]``.
     As a.b - |a|^2 / 2 - |b|^2 / 2, with the norms as two extra columns of one matrix product:
     no [N1, N2] temporary beside it (a third of the time at 2000 points). On one BLAS thread:
-    the next detection's cores stay free (``blas_threads``)."""
+    the next detection's cores stay free (``inference.threads``)."""
     a = np.asarray(descriptors1, np.float32)
     b = np.asarray(descriptors2, np.float32)
     half_a = -0.5 * np.einsum("nd,nd->n", a, a)[:, None]

@@ -1,19 +1,39 @@
-"""NumPy's matrix products on one thread, for matching between compiled detections.
+"""The host's threads around the compiled detector: host work on a thread per core, and NumPy's
+matrix products on one BLAS thread.
+
+Matching, the epipolar filter and the match refinement are NumPy and OpenCV work that releases
+the GIL in its large array operations, so independent pieces of it (image pairs, chunks of
+matches) run side by side on :data:`THREADS` threads (:func:`threaded`).
 
 OpenBLAS's worker threads busy-wait for a while after each multi-threaded product before they
 sleep, so the XLA detection that follows a match (the next video frame) finds its cores taken:
 on 2 cores one 1000-point match made the next 480 px detection take 73 ms instead of 38, and
-``track``'s default frame on box.mp4 133 ms instead of 84 (RESULTS.md "Video"). On one thread
-the product itself is slower (1000 x 1000 points: 3.1 -> 4.5 ms), far less than it costs the
-detection; callers that match many pairs run them on threads of their own (``sfm``).
+``track``'s default frame on box.mp4 133 ms instead of 84 (RESULTS.md "Video"). Inside
+:data:`one_blas_thread` the product runs on one thread (1000 x 1000 points: 3.1 -> 4.5 ms), far
+less than it cost the detection; callers that match many pairs run them on :func:`threaded`.
 """
 
 from __future__ import annotations
 
 import functools
+import os
 import threading
+from collections.abc import Callable, Sequence
+from concurrent.futures import ThreadPoolExecutor
 
 import threadpoolctl
+
+#: Threads of :func:`threaded`: one per core.
+THREADS = os.cpu_count() or 1
+
+
+def threaded(function: Callable, items: Sequence, progress: Callable = iter) -> list:
+    """``function`` of each item on :data:`THREADS` threads, the results in order; ``progress``
+    wraps the wait for them (a tqdm bar counts finished items). Threads started inside the main
+    thread's :data:`one_blas_thread` block share its limit."""
+    with ThreadPoolExecutor(THREADS) as pool:
+        futures = [pool.submit(function, item) for item in items]
+        return [future.result() for future in progress(futures)]
 
 
 @functools.cache
@@ -22,11 +42,11 @@ def _controller() -> threadpoolctl.ThreadpoolController:
     return threadpoolctl.ThreadpoolController()
 
 
-class _OneThread:
+class _OneBlasThread:
     """Context manager: the BLAS libraries on one thread while the main thread is inside it
     (re-entrant), and as they were once it leaves. From any other thread it changes nothing:
     OpenBLAS lets such a thread lower its count but not raise it again, so a worker's limit
-    would outlive it. Threads started inside the main thread's block share its limit."""
+    would outlive it."""
 
     def __init__(self):
         self._inside = 0
@@ -49,4 +69,4 @@ class _OneThread:
 
 
 #: ``with one_blas_thread: ...`` runs NumPy's matrix products on one thread (module docstring).
-one_blas_thread = _OneThread()
+one_blas_thread = _OneBlasThread()

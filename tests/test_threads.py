@@ -1,16 +1,18 @@
-"""inference.blas_threads: matching's products on one BLAS thread, the limit restored after."""
+"""inference.threads: host work on a thread per core, matching's products on one BLAS thread."""
 
 import contextlib
 import threading
+import time
 
 import cv2
 import numpy as np
 import threadpoolctl
 
 from usp_jax import sfm
-from usp_jax.inference.blas_threads import one_blas_thread
+from usp_jax.inference import threads
 from usp_jax.inference.features import Features
 from usp_jax.inference.matching import nearest_neighbours
+from usp_jax.inference.threads import one_blas_thread
 
 
 def blas_threads() -> set[int]:
@@ -61,3 +63,19 @@ def test_matching_leaves_the_blas_threads_as_it_found_them():
         np.testing.assert_array_equal(
             found, sfm.match_pairs([features[i], features[j]], np.array([[0, 1]]))[0]
         )
+
+
+def test_threaded_returns_results_in_the_items_order_whichever_finishes_first(monkeypatch):
+    monkeypatch.setattr(threads, "THREADS", 3)
+    waited = []
+
+    def slow_first(item):
+        time.sleep(0.05 if item == 0 else 0.0)
+        return item * item
+
+    def progress(futures):
+        waited.append(len(futures))
+        return futures
+
+    assert threads.threaded(slow_first, range(5), progress) == [0, 1, 4, 9, 16]
+    assert waited == [5]
