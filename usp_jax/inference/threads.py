@@ -7,10 +7,11 @@ matches) run side by side on :data:`THREADS` threads (:func:`threaded`).
 
 OpenBLAS's worker threads busy-wait for a while after each multi-threaded product before they
 sleep, so the XLA detection that follows a match (the next video frame) finds its cores taken:
-on 2 cores one 1000-point match made the next 480 px detection take 73 ms instead of 38, and
-``track``'s default frame on box.mp4 133 ms instead of 84 (RESULTS.md "Video"). Inside
-:data:`one_blas_thread` the product runs on one thread (1000 x 1000 points: 3.1 -> 4.5 ms), far
-less than it cost the detection; callers that match many pairs run them on :func:`threaded`.
+on 2 cores a 1000-point match made the next 480 px detection take 95 ms instead of 54 (49 with
+no match before it; ``benchmarks/bench_blas_threads.py``), and ``track``'s default frame on
+box.mp4 130-150 ms instead of 90-108 (RESULTS.md "Video"). Inside :data:`one_blas_thread` the
+product runs on one thread (2.8 -> 4.4 ms), far less than it cost the detection; callers that
+match many pairs run them on :func:`threaded`.
 """
 
 from __future__ import annotations
