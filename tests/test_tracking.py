@@ -144,6 +144,7 @@ def test_a_frame_costs_one_refinement_its_match_to_the_previous_frame(frames, mo
 
     refine_matches = tracking.refine_matches
     monkeypatch.setattr(tracking, "refine_matches", counting)
+    monkeypatch.setattr(tracking, "THREADS", 1)  # one call per refinement, not a share per thread
     results = list(tracking.track(frames[:4], opencv_method("SIFT", 200)))
     assert any(r.keyframe != r.index - 1 for r in results[2:])  # a keyframe match was made
     assert calls == [tracking.AFFINE_STEPS] * 3
@@ -154,6 +155,19 @@ def test_a_frame_costs_one_refinement_its_match_to_the_previous_frame(frames, mo
         )
     )
     assert calls == []
+
+
+def test_the_refinement_split_over_threads_tracks_as_on_one(frames, monkeypatch):
+    def run(threads):
+        monkeypatch.setattr(tracking, "THREADS", threads)
+        return list(tracking.track(frames[:4], opencv_method("SIFT", 200)))
+
+    one, three = run(1), run(3)
+    assert sum(int(r.inliers.sum()) for r in one) > 0
+    for a, b in zip(one, three, strict=True):
+        np.testing.assert_array_equal(a.matches, b.matches)
+        np.testing.assert_array_equal(a.inliers, b.inliers)
+        np.testing.assert_array_equal(a.track_ids, b.track_ids)
 
 
 @pytest.mark.parametrize(

@@ -20,7 +20,7 @@ import functools
 import os
 import threading
 from collections.abc import Callable, Sequence
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import Executor, ThreadPoolExecutor
 
 import threadpoolctl
 
@@ -28,13 +28,19 @@ import threadpoolctl
 THREADS = os.cpu_count() or 1
 
 
-def threaded(function: Callable, items: Sequence, progress: Callable = iter) -> list:
+def threaded(
+    function: Callable, items: Sequence, progress: Callable = iter, pool: Executor | None = None
+) -> list:
     """``function`` of each item on :data:`THREADS` threads, the results in order; ``progress``
-    wraps the wait for them (a tqdm bar counts finished items). Threads started inside the main
-    thread's :data:`one_blas_thread` block share its limit."""
-    with ThreadPoolExecutor(THREADS) as pool:
-        futures = [pool.submit(function, item) for item in items]
-        return [future.result() for future in progress(futures)]
+    wraps the wait for them (a tqdm bar counts finished items). ``pool``: the caller's executor,
+    kept across calls (a tracker's frames: a new thread per frame pays OpenCV's set-up of a
+    thread each time); None: one for this call. Threads started inside the main thread's
+    :data:`one_blas_thread` block share its limit."""
+    if pool is None:
+        with ThreadPoolExecutor(THREADS) as pool:
+            return threaded(function, items, progress, pool)
+    futures = [pool.submit(function, item) for item in items]
+    return [future.result() for future in progress(futures)]
 
 
 @functools.cache

@@ -22,6 +22,7 @@ import dataclasses
 import itertools
 import time
 from collections.abc import Iterable, Iterator
+from concurrent.futures import Executor, ThreadPoolExecutor
 from typing import Any, NamedTuple
 
 import cv2
@@ -38,6 +39,7 @@ from usp_jax.inference.matching import (
     matched_points,
     nearest_neighbours,
 )
+from usp_jax.inference.threads import THREADS, threaded
 
 #: Points per frame and NMS radius of the default detector: the protocol's count above 240x320,
 #: and the radius that spreads points for a better-conditioned estimate (RESULTS.md).
@@ -50,7 +52,8 @@ NMS_RADIUS = 4.0
 #: RESULTS.md "Pose"). On 48 design pairs of rendered rooms 480 px with 2 steps (AUC@10 0.594)
 #: is as accurate as the best candidate within SIFT's time there (560 px, 5 steps: 0.612, at
 #: 0.99x SIFT's time) at 0.68x; on real footage (box.mp4, ~900 matches per frame, where the
-#: refinement costs more) it is the one of the two within SIFT's time (0.96x against 1.20x).
+#: refinement costs more) it is the one of the two within SIFT's time (0.83-0.85x since the
+#: refinement runs a thread per core; 560 px with 5 steps 1.15-1.20x).
 #: The old default, 640 px unrefined: 0.435. ``paper`` at full size takes ~6x SIFT's time, too
 #: slow for a live camera. The network's own sub-pixel refinement stays off: on video it adds
 #: time and no inliers.
@@ -153,16 +156,24 @@ def match_frames(
     norm: int,
     config: TrackingConfig,
     greys: tuple[np.ndarray, np.ndarray] | None = None,
+    pool: Executor | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Mutual nearest neighbours of two frames' descriptors (``matching.nearest_neighbours``)
     and :func:`verify`: (int64 ``[K, 2]`` matches, bool ``[K]`` inliers). With
     ``config.refine_matches`` and the frames' grey images ``greys`` (float32 ``[H, W]`` each),
     the matched points of frame 2 are refined (``match_refinement``, ``config.affine_steps``)
-    before verification."""
+    before verification, a share of them per thread (``inference.threads``; ``pool``: the
+    executor to run them on, None: one for this call)."""
     matches = nearest_neighbours(features1.descriptors, features2.descriptors, norm, True)
     points1, points2 = matched_points(features1, features2, matches)
     if config.refine_matches and greys is not None:
-        points2 = refine_matches(*greys, points1, points2, affine_steps=config.affine_steps)[0]
+        steps = config.affine_steps
+
+        def refined(share: np.ndarray) -> np.ndarray:
+            return refine_matches(*greys, points1[share], points2[share], affine_steps=steps)[0]
+
+        shares = np.array_split(np.arange(len(matches)), THREADS)
+        points2 = np.concatenate(threaded(refined, shares, pool=pool))
     return matches, verify(points1, points2, config)
 
 
@@ -215,6 +226,15 @@ def track(
     ValueError naming the frame when a frame's size differs from the first's.
     """
     detector = default_detector() if detector is None else detector
+    # One pool for the run: the match refinement's threads (match_frames).
+    with ThreadPoolExecutor(THREADS) as pool:
+        yield from _tracked(frames, detector, config, pool)
+
+
+def _tracked(
+    frames: Iterable[np.ndarray], detector: Any, config: TrackingConfig, pool: Executor
+) -> Iterator[TrackedFrame]:
+    """:func:`track`'s loop, the refinement's threads on ``pool``."""
     norm = getattr(detector, "norm", cv2.NORM_L2)
     no_matches = (np.zeros((0, 2), np.int64), np.zeros(0, bool))
     previous = keyframe = None  # (index, features, track ids, grey frame or None)
@@ -236,7 +256,9 @@ def track(
         to_previous = to_keyframe = no_matches
         separate = previous is not None and keyframe[0] != previous[0]
         if previous is not None:
-            to_previous = match_frames(previous[1], features, norm, config, (previous[3], image))
+            to_previous = match_frames(
+                previous[1], features, norm, config, (previous[3], image), pool
+            )
             # Unrefined (TrackingConfig): one refinement per frame.
             to_keyframe = (
                 match_frames(keyframe[1], features, norm, config) if separate else to_previous
