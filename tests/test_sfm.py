@@ -416,3 +416,29 @@ def test_models_come_largest_first_in_the_list_and_the_folders_whatever_colmaps_
     with pytest.raises(ValueError, match="holds something already"):  # never mixes two runs
         sfm.map_images(database, images, tmp_path / "sparse")
     assert {p.name for p in (tmp_path / "sparse").iterdir()} == {"0", "1", "2"}
+
+
+def test_mapping_never_writes_into_a_folder_a_killed_call_left_and_cleans_up_when_it_fails(
+    tmp_path, monkeypatch
+):
+    images, database = _database_with_geometries(tmp_path, {})
+    for left in ("sparse.start0", ".sparse.start0-killed"):  # what killed calls left
+        (tmp_path / left / "7").mkdir(parents=True)
+
+    def mapping(database, image_dir, folder, options, next_image_callback=None):
+        assert not any(pathlib.Path(folder).iterdir())  # a fresh folder for every start
+        (pathlib.Path(folder) / "0").mkdir()
+        return {0: _Model(2, 0.2)}
+
+    monkeypatch.setattr(pycolmap, "incremental_mapping", mapping)
+    sfm.map_images(database, images, tmp_path / "sparse")
+    assert {p.name for p in (tmp_path / "sparse").iterdir()} == {"0"}
+
+    def failing(database, image_dir, folder, options, next_image_callback=None):
+        (pathlib.Path(folder) / "0").mkdir()
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(pycolmap, "incremental_mapping", failing)
+    with pytest.raises(KeyboardInterrupt):
+        sfm.map_images(database, images, tmp_path / "again")
+    assert not list(tmp_path.glob("*again.start*")) and not (tmp_path / "again").exists()

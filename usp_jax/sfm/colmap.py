@@ -10,6 +10,7 @@ from __future__ import annotations
 import itertools
 import pathlib
 import shutil
+import tempfile
 from collections.abc import Callable, Sequence
 from typing import NamedTuple
 
@@ -187,7 +188,6 @@ def map_images(
         if pair is not None:  # one try: COLMAP would retry an unsuitable given pair 200 times
             options.init_image_id1, options.init_image_id2 = pair
             options.init_num_trials = 1
-        folder.mkdir(parents=True, exist_ok=True)
         registered = itertools.count(1)
         models = pycolmap.incremental_mapping(
             str(database),
@@ -212,20 +212,30 @@ def map_images(
     pair = initial_pair(database) if general_start else None
     starts = [pair, None] if pair is not None else [None]
     best, kept = [], None
-    for index, pair in enumerate(starts):
-        folder = sparse_dir.with_name(f"{sparse_dir.name}.start{index}")
-        models = mapped(folder, pair)
-        if kept is None or rank(models) > rank(best):
-            if kept is not None:
-                shutil.rmtree(kept)
-            best, kept = models, folder
-        else:
-            shutil.rmtree(folder)
-        if rank(best)[0] == images:
-            break
-    if sparse_dir.exists():
-        sparse_dir.rmdir()
-    kept.rename(sparse_dir)
+    sparse_dir.parent.mkdir(parents=True, exist_ok=True)
+    try:
+        for index, pair in enumerate(starts):
+            # A fresh folder per start: a call killed earlier may have left one behind, and
+            # the mapper would add its models to whatever a reused folder still holds.
+            folder = pathlib.Path(
+                tempfile.mkdtemp(prefix=f".{sparse_dir.name}.start{index}-", dir=sparse_dir.parent)
+            )
+            models = mapped(folder, pair)
+            if kept is None or rank(models) > rank(best):
+                if kept is not None:
+                    shutil.rmtree(kept)
+                best, kept = models, folder
+            else:
+                shutil.rmtree(folder)
+            if rank(best)[0] == images:
+                break
+        if sparse_dir.exists():
+            sparse_dir.rmdir()
+        kept.rename(sparse_dir)
+    except BaseException:
+        for leftover in sparse_dir.parent.glob(f".{sparse_dir.name}.start*-*"):
+            shutil.rmtree(leftover, ignore_errors=True)
+        raise
     return best
 
 
