@@ -9,6 +9,7 @@ from conftest import TINY_RUN, USP_JAX, child_env, train_args
 from usp_jax import evaluation
 from usp_jax.cli import main, parse_args
 from usp_jax.evaluation.plotting import DPI, PANEL_INCHES
+from usp_jax.inference import turning
 from usp_jax.inference import weights as weights_lib
 
 
@@ -105,8 +106,10 @@ def test_match_across_any_rotation_turns_image_2_back_and_recovers_the_homograph
     result = json.loads(out.read_text())
     assert result["turned_back_degrees"] == pytest.approx(-120, abs=3)
     assert evaluation.corner_error(truth, np.array(result["homography"]), (256, 256)) < 3
-    assert main(argv) == 0  # without the flag nothing is turned
+    assert main([*argv, "--no-turn-back"]) == 0  # without a turning option nothing is turned
     assert json.loads(out.read_text())["turned_back_degrees"] is None
+    assert main(argv) == 0  # 120 degrees: past what --turn-back's upright matches can read
+    assert json.loads(out.read_text())["turned_back_degrees"] == 0.0
     # A guide given as a weights file works like the shipped name it was copied from.
     guide = tmp_path / "guide.npz"
     guide.write_bytes((weights_lib.WEIGHTS_DIR / "rotation.npz").read_bytes())
@@ -206,9 +209,13 @@ def test_train_resumes_and_the_checkpoint_detects_and_evaluates(
     assert "model matching across any rotation" in capsys.readouterr().out
 
 
-def test_match_recovers_a_known_homography_between_a_photo_and_its_warp(photo, tmp_path, capsys):
+@pytest.mark.parametrize("flags", [[], ["--no-turn-back"]])
+def test_match_recovers_a_known_homography_between_a_photo_and_its_warp(
+    photo, tmp_path, capsys, flags
+):
     # A 20 degree rotation with some scale and keystone: the shipped weights' matches and RANSAC
-    # should land within the protocol's 3 px at the corners.
+    # should land within the protocol's 3 px at the corners, with image 2 turned back by the turn
+    # the upright matches read (the default) or not.
     truth = cv2.getRotationMatrix2D((256, 256), 20, 0.9)
     truth = np.vstack([truth, [2e-4, -1e-4, 1]])
     first, second = tmp_path / "a.png", tmp_path / "b.jpg"
@@ -229,6 +236,7 @@ def test_match_recovers_a_known_homography_between_a_photo_and_its_warp(photo, t
                 str(out),
                 "--out",
                 str(tmp_path / "m.png"),
+                *flags,
             ]
         )
         == 0
@@ -236,6 +244,11 @@ def test_match_recovers_a_known_homography_between_a_photo_and_its_warp(photo, t
     printed = capsys.readouterr().out
     assert "RANSAC inliers" in printed and "homography image1 -> image2" in printed
     result = json.loads(out.read_text())
+    if flags:
+        assert result["turned_back_degrees"] is None
+    else:  # the keystone adds 2.5 degrees of turn at the centre
+        turn = turning.in_plane_rotation(truth, (512, 512))
+        assert result["turned_back_degrees"] == pytest.approx(turn, abs=1)
     assert len(result["matches"]) == len(result["inliers"]) >= sum(result["inliers"]) >= 20
     error = evaluation.corner_error(truth, np.array(result["homography"]), (512, 512))
     assert error < 3
@@ -255,6 +268,17 @@ def test_match_recovers_a_known_homography_between_a_photo_and_its_warp(photo, t
         (
             ["evaluate", "--hpatches", "{tmp}", "--baselines-only", "--guide", "rotation"],
             "--guide is only used with --any-rotation",
+        ),
+        (
+            [
+                "evaluate",
+                "--hpatches",
+                "{tmp}",
+                "--baselines-only",
+                "--turn-back",
+                "--any-rotation",
+            ],
+            "give one",
         ),
         (["detect", "{tmp}/absent.png", "--checkpoint", "{tmp}/none"], "none"),
         (["evaluate", "--hpatches", "{tmp}", "--checkpoint", "{tmp}/gone.npz"], "gone.npz"),

@@ -226,3 +226,37 @@ def test_a_guide_near_a_quarter_turn_turns_image_2_by_the_quarter_turn_alone(
     expected = np.stack([direct.keypoints[:, 1], 255 - direct.keypoints[:, 0]], axis=1)
     np.testing.assert_allclose(features2.keypoints, expected, atol=1e-4)
     np.testing.assert_array_equal(features2.descriptors, direct.descriptors)
+
+
+def test_turning_back_by_the_upright_matches_own_turn_recovers_a_hand_held_turn(small_photo):
+    # 25 degrees: past UPRIGHT_BELOW, inside what the upright matches still read.
+    detector = Detector.pretrained(top_n=500)
+    turned, truth = _turned_by(small_photo, 25.0)
+    upright = evaluation.match_and_estimate(detector.detect(small_photo), detector.detect(turned))
+    features1, features2, angle = turning.turn_back_pair(detector, small_photo, turned)
+    found = evaluation.match_and_estimate(features1, features2)
+    assert angle == pytest.approx(-25.0, abs=2)  # the sense that undoes the turn
+    assert found.inliers.sum() > upright.inliers.sum()
+    assert evaluation.corner_error(truth, found.homography, (256, 256)) < 2
+
+
+def test_turning_back_leaves_an_upright_pair_and_a_pair_without_matches_as_they_are(small_photo):
+    detector = Detector.pretrained(top_n=500)
+    for image2 in (np.roll(small_photo, 3, axis=1), np.full_like(small_photo, 128)):
+        features1, features2, angle = turning.turn_back_pair(detector, small_photo, image2)
+        assert angle == 0.0
+        np.testing.assert_array_equal(features2.keypoints, detector.detect(image2).keypoints)
+        np.testing.assert_array_equal(features1.keypoints, detector.detect(small_photo).keypoints)
+
+
+def test_turning_back_keeps_image_2_upright_when_the_turned_copy_matches_worse(
+    small_photo, monkeypatch
+):
+    # A homography that reads a turn the pair does not have (a chance fit on a 3-D scene): the
+    # turned detection matches worse and is dropped.
+    detector = Detector.pretrained(top_n=500)
+    shifted = np.roll(small_photo, 3, axis=1)
+    monkeypatch.setattr(turning, "in_plane_rotation", lambda *_: 40.0)
+    _, features2, angle = turning.turn_back_pair(detector, small_photo, shifted)
+    assert angle == 0.0
+    np.testing.assert_array_equal(features2.keypoints, detector.detect(shifted).keypoints)

@@ -191,7 +191,9 @@ def add_network_options(parser) -> None:
     add_any_scale(parser)
 
 
-def add_any_rotation(parser) -> None:
+def add_any_rotation(parser, turn_back: bool = False) -> None:
+    """``--any-rotation``, ``--guide`` and ``--[no-]turn-back`` (on by default where
+    ``turn_back``; read with :func:`turns_back`)."""
     parser.add_argument(
         "--any-rotation",
         action="store_true",
@@ -204,6 +206,23 @@ def add_any_rotation(parser) -> None:
         help="--any-rotation's rotation-invariant weights: a shipped name, a .npz weights file"
         " or a training workdir (default: the shipped rotation weights)",
     )
+    parser.add_argument(
+        "--turn-back",
+        action=argparse.BooleanOptionalAction,
+        default=None,
+        help="for the moderate turns of hand-held photos, without a guide: when the upright"
+        " matches' homography turns by 10 degrees or more, detect image 2 turned back by it and"
+        " keep that if it matches as well or better"
+        f" (default: {'on, unless --any-rotation' if turn_back else 'off'})",
+    )
+
+
+def turns_back(args, default: bool = False) -> bool:
+    """Whether image 2 is turned back by the upright matches' turn: ``--turn-back`` or
+    ``--no-turn-back`` as given, else ``default`` unless ``--any-rotation`` turns it instead."""
+    if args.turn_back and args.any_rotation:
+        raise ValueError("--turn-back and --any-rotation are two ways to turn image 2: give one")
+    return default and not args.any_rotation if args.turn_back is None else args.turn_back
 
 
 def add_weights_name(parser, default: str = DEFAULT_PRETRAINED, why: str = "") -> None:

@@ -34,7 +34,7 @@ def add_parser(subparsers) -> None:
     p.add_argument("--out", help="PNG of the inlier matches and image 1's border warped by H")
     p.add_argument("--json", help="homography, matches, inlier mask and keypoints as JSON")
     arguments.add_network_options(p)
-    arguments.add_any_rotation(p)
+    arguments.add_any_rotation(p, turn_back=True)
 
 
 def run(args) -> int | None:
@@ -48,9 +48,14 @@ def run(args) -> int | None:
     outputs.check_output_file(args.json, "--json")
     detector = arguments.load_detector(args, nms_radius=args.nms, max_side=args.max_side)
     guide = arguments.guide(args, max_side=args.max_side)
+    turn_back = arguments.turns_back(args, default=True)
     image1, image2 = read_image(args.image1), read_image(args.image2)
     angle = None
-    if guide is None:
+    if turn_back:
+        features1, features2, angle = turning.turn_back_pair(detector, image1, image2, args.top)
+        if angle:
+            print(f"image 2 turned back by {angle:.1f} degrees before detection (--turn-back)")
+    elif guide is None:
         features1, features2 = (detector.detect(image, args.top) for image in (image1, image2))
     else:
         features1, features2, angle = turning.detect_pair(detector, guide, image1, image2, args.top)

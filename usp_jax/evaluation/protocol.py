@@ -46,16 +46,17 @@ def methods(
     baselines: Sequence[str],
     top_k: int,
     guide: Detector | None = None,
+    turn_back: bool = False,
 ) -> list[Method]:
-    """The methods of one evaluation: ``detector`` (if any, :func:`as_method`, with ``guide``) and
-    the named ``baselines`` (OpenCV's, or "xfeat": ``methods.baseline_method``), in that order,
-    for a protocol keeping ``top_k`` points.
+    """The methods of one evaluation: ``detector`` (if any, :func:`as_method`, with ``guide`` or
+    ``turn_back``) and the named ``baselines`` (OpenCV's, or "xfeat":
+    ``methods.baseline_method``), in that order, for a protocol keeping ``top_k`` points.
 
     The evaluation applies NMS and the shared-view filter before its own top-k, to
     UnsuperPoint's full candidate set; a baseline cut at exactly top-k before them would be left
     with fewer points than the model on every viewpoint pair, so each keeps 4 ``top_k``.
     """
-    found = [as_method(detector, guide=guide)] if detector is not None else []
+    found = [as_method(detector, guide=guide, turn_back=turn_back)] if detector is not None else []
     return found + [baseline_method(name, 4 * top_k) for name in baselines]
 
 

@@ -73,7 +73,10 @@ class Method:
 
 
 def as_method(
-    detector: Detector, name: str = "UnsuperPoint", guide: Detector | None = None
+    detector: Detector,
+    name: str = "UnsuperPoint",
+    guide: Detector | None = None,
+    turn_back: bool = False,
 ) -> Method:
     """The detector as an evaluation Method (L2 descriptors) returning ALL its candidate points:
     the evaluation applies NMS and top-k to every method alike, so ``detector``'s ``top_n``,
@@ -81,13 +84,17 @@ def as_method(
     are).
 
     With a rotation-invariant ``guide`` the method matches across any rotation: image 2 is
-    detected turned back by the angle the guide estimates (``turning.detect_pair``)."""
+    detected turned back by the angle the guide estimates (``turning.detect_pair``). With
+    ``turn_back`` (and no guide) image 2 is turned back by the angle the upright matches read
+    (``turning.turn_back_pair``)."""
     every_point = detector.replace(top_n=None, nms_radius=0, border=0, max_side=0)
-    if guide is None:
+    if guide is None and not turn_back:
         return Method(name, every_point.detect, cv2.NORM_L2)
 
     def detect_pair(image1: np.ndarray, image2: np.ndarray) -> tuple[Features, Features]:
-        return turning.detect_pair(every_point, guide, image1, image2)[:2]
+        if guide is not None:
+            return turning.detect_pair(every_point, guide, image1, image2)[:2]
+        return turning.turn_back_pair(every_point, image1, image2)[:2]
 
     return Method(name, every_point.detect, cv2.NORM_L2, detect_pair)
 
