@@ -209,13 +209,10 @@ def test_train_resumes_and_the_checkpoint_detects_and_evaluates(
     assert "model matching across any rotation" in capsys.readouterr().out
 
 
-@pytest.mark.parametrize("flags", [[], ["--no-turn-back"]])
-def test_match_recovers_a_known_homography_between_a_photo_and_its_warp(
-    photo, tmp_path, capsys, flags
-):
+def test_match_recovers_a_known_homography_between_a_photo_and_its_warp(photo, tmp_path, capsys):
     # A 20 degree rotation with some scale and keystone: the shipped weights' matches and RANSAC
-    # should land within the protocol's 3 px at the corners, with image 2 turned back by the turn
-    # the upright matches read (the default) or not.
+    # should land within the protocol's 3 px at the corners, image 2 turned back by the turn the
+    # upright matches read (the default; --no-turn-back: test_match_across_any_rotation_...).
     truth = cv2.getRotationMatrix2D((256, 256), 20, 0.9)
     truth = np.vstack([truth, [2e-4, -1e-4, 1]])
     first, second = tmp_path / "a.png", tmp_path / "b.jpg"
@@ -236,7 +233,6 @@ def test_match_recovers_a_known_homography_between_a_photo_and_its_warp(
                 str(out),
                 "--out",
                 str(tmp_path / "m.png"),
-                *flags,
             ]
         )
         == 0
@@ -244,11 +240,8 @@ def test_match_recovers_a_known_homography_between_a_photo_and_its_warp(
     printed = capsys.readouterr().out
     assert "RANSAC inliers" in printed and "homography image1 -> image2" in printed
     result = json.loads(out.read_text())
-    if flags:
-        assert result["turned_back_degrees"] is None
-    else:  # the keystone adds 2.5 degrees of turn at the centre
-        turn = turning.in_plane_rotation(truth, (512, 512))
-        assert result["turned_back_degrees"] == pytest.approx(turn, abs=1)
+    turn = turning.in_plane_rotation(truth, (512, 512))  # the keystone adds 2.5 degrees
+    assert result["turned_back_degrees"] == pytest.approx(turn, abs=1)
     assert len(result["matches"]) == len(result["inliers"]) >= sum(result["inliers"]) >= 20
     error = evaluation.corner_error(truth, np.array(result["homography"]), (512, 512))
     assert error < 3

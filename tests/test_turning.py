@@ -228,9 +228,17 @@ def test_a_guide_near_a_quarter_turn_turns_image_2_by_the_quarter_turn_alone(
     np.testing.assert_array_equal(features2.descriptors, direct.descriptors)
 
 
-def test_turning_back_by_the_upright_matches_own_turn_recovers_a_hand_held_turn(small_photo):
+@pytest.fixture(scope="module")
+def detector500():
+    """One detector (one compiled function) for the tests of turning back."""
+    return Detector.pretrained(top_n=500)
+
+
+def test_turning_back_by_the_upright_matches_own_turn_recovers_a_hand_held_turn(
+    small_photo, detector500
+):
     # 25 degrees: past UPRIGHT_BELOW, inside what the upright matches still read.
-    detector = Detector.pretrained(top_n=500)
+    detector = detector500
     turned, truth = _turned_by(small_photo, 25.0)
     upright = evaluation.match_and_estimate(detector.detect(small_photo), detector.detect(turned))
     features1, features2, angle = turning.turn_back_pair(detector, small_photo, turned)
@@ -240,8 +248,10 @@ def test_turning_back_by_the_upright_matches_own_turn_recovers_a_hand_held_turn(
     assert evaluation.corner_error(truth, found.homography, (256, 256)) < 2
 
 
-def test_turning_back_leaves_an_upright_pair_and_a_pair_without_matches_as_they_are(small_photo):
-    detector = Detector.pretrained(top_n=500)
+def test_turning_back_leaves_an_upright_pair_and_a_pair_without_matches_as_they_are(
+    small_photo, detector500
+):
+    detector = detector500
     for image2 in (np.roll(small_photo, 3, axis=1), np.full_like(small_photo, 128)):
         features1, features2, angle = turning.turn_back_pair(detector, small_photo, image2)
         assert angle == 0.0
@@ -250,11 +260,11 @@ def test_turning_back_leaves_an_upright_pair_and_a_pair_without_matches_as_they_
 
 
 def test_turning_back_keeps_image_2_upright_when_the_turned_copy_matches_worse(
-    small_photo, monkeypatch
+    small_photo, detector500, monkeypatch
 ):
     # A homography that reads a turn the pair does not have (a chance fit on a 3-D scene): the
     # turned detection matches worse and is dropped.
-    detector = Detector.pretrained(top_n=500)
+    detector = detector500
     shifted = np.roll(small_photo, 3, axis=1)
     monkeypatch.setattr(turning, "in_plane_rotation", lambda *_: 40.0)
     _, features2, angle = turning.turn_back_pair(detector, small_photo, shifted)
