@@ -18,7 +18,7 @@ is their true partner), each with a 95% bootstrap interval over the pairs::
 ``usp-jax match --any-rotation`` does; ``--true-turn`` by the pair's true turn, as a perfect
 guide would; ``--turn-back`` by the turn the upright matches read (``usp-jax match
 --turn-back``). ``--weights`` takes shipped names, weights files and
-training checkpoints (several: one method each). ``--compare A.json METHOD_A B.json METHOD_B``
+training checkpoints (several: one method each); ``--any-scale`` runs them on their pyramid. ``--compare A.json METHOD_A B.json METHOD_B``
 prints B's method minus A's per range, paired over the pairs both files hold, with 95%
 paired-bootstrap intervals (the same ``--seed`` and ``--per-photo`` draw the same pairs)::
 
@@ -167,6 +167,7 @@ def main() -> None:
         action="store_true",
         help="turn image 2 back by the angle the upright matches read (turning.turn_back_pair)",
     )
+    parser.add_argument("--any-scale", action="store_true", help="our detector on its pyramid")
     parser.add_argument("--per-photo", type=int, default=4)
     parser.add_argument("--seed", type=int, default=1)
     parser.add_argument("--json", type=pathlib.Path)
@@ -182,7 +183,11 @@ def main() -> None:
         parser.error("--images is required (or --compare)")
     guide = Detector.pretrained("rotation") if args.any_rotation else None
     label = next((f" --{flag.replace('_', '-')}" for flag in TURNS if getattr(args, flag)), "")
-    ours = {w + label: _detector(w).replace(top_n=None, max_side=0) for w in args.weights}
+    label += " --any-scale" if args.any_scale else ""
+    ours = {
+        w + label: _detector(w).replace(top_n=None, max_side=0, any_scale=args.any_scale)
+        for w in args.weights
+    }
     methods = [as_method(d, name, guide, args.turn_back) for name, d in ours.items()]
     methods += [baseline_method(name, TOP) for name in args.baselines]
     rows = []
