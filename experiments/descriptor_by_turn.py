@@ -96,6 +96,14 @@ def bootstrap(values: np.ndarray, draws: int = 2000, seed: int = 0) -> tuple[flo
     return tuple(float(v) for v in np.percentile(means, [2.5, 97.5]))
 
 
+def _cell(values: list[float], signed: bool = False) -> str:
+    """``mean [low, high]`` of ``values`` with its 95% bootstrap interval over the pairs."""
+    values = np.array(values)
+    low, high = bootstrap(values)
+    form = "+.3f" if signed else ".3f"
+    return f"{values.mean():{form}} [{low:{form}}, {high:{form}}]"
+
+
 def _ranges():
     for key, edges, unit in (("turn", TURN_BINS, " deg"), ("scale", SCALE_BINS, "x")):
         for low, high in zip(edges[:-1], edges[1:]):
@@ -111,11 +119,10 @@ def compare(first: list[dict], second: list[dict]) -> str:
         inside = [(a, b) for a, b in both if low <= a[key] < high]
         if not inside:
             continue
-        cells = []
-        for metric in ("repeatability", "nn_share"):
-            change = np.array([b[metric] - a[metric] for a, b in inside])
-            a, b = bootstrap(change)
-            cells.append(f"{change.mean():+.3f} [{a:+.3f}, {b:+.3f}]")
+        cells = [
+            _cell([b[metric] - a[metric] for a, b in inside], signed=True)
+            for metric in ("repeatability", "nn_share")
+        ]
         lines.append(f"| {label} | {len(inside)} | {' | '.join(cells)} |")
     return "\n".join(lines)
 
@@ -132,11 +139,9 @@ def table(rows: list[dict]) -> str:
             inside = [row for row in mine if low <= row[key] < high]
             if not inside:
                 continue
-            cells = []
-            for metric in ("repeatability", "nn_share"):
-                values = np.array([row[metric] for row in inside])
-                a, b = bootstrap(values)
-                cells.append(f"{values.mean():.3f} [{a:.3f}, {b:.3f}]")
+            cells = [
+                _cell([row[metric] for row in inside]) for metric in ("repeatability", "nn_share")
+            ]
             lines.append(f"| {method} | {label} | {len(inside)} | {' | '.join(cells)} |")
     return "\n".join(lines)
 

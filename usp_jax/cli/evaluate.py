@@ -74,8 +74,8 @@ def run(args) -> None:
     guide = (
         arguments.guide(args) if detector is not None else arguments.guide(args, checked_only=True)
     )
-    args.turn_back = arguments.turns_back(args)
-    methods = protocol.methods(detector, baselines, args.top, guide, args.turn_back)
+    turn_back = arguments.turns_back(args)
+    methods = protocol.methods(detector, baselines, args.top, guide, turn_back)
     if args.real:
         return _run_real(args, methods)
     height, width = args.res = args.res or (240, 320)
@@ -91,9 +91,7 @@ def run(args) -> None:
     )
     enlarged = f", model on {args.upsample}x enlarged images" if args.upsample > 1 else ""
     enlarged += ", model matching across any rotation" if guide is not None else ""
-    enlarged += (
-        ", image 2 turned back by the model's own turn (--turn-back)" if args.turn_back else ""
-    )
+    enlarged += ", image 2 turned back by the model's own turn (--turn-back)" if turn_back else ""
     enlarged += ", model on an image pyramid (--any-scale)" if args.any_scale else ""
     print(f"{args.hpatches}{enlarged}")  # the table's first line has the size, points and NMS
     print(protocol.format_table(results))

@@ -268,8 +268,8 @@ def turn_back_pair(
     For the moderate turns two hand-held photos make, which the upright matches still read:
     on warped held-out pairs turned by 20-35 degrees the upright descriptor finds the partner of
     0.20 of the repeatable points, 0.54 with image 2 turned back by the true turn
-    (experiments/RESULTS.md, "Turning image 2 back"). One more detection of image 2, on a larger canvas,
-    when it turns; none otherwise."""
+    (experiments/RESULTS.md, "Turning image 2 back"). One more detection of image 2, on a larger
+    canvas, when it turns; none otherwise."""
     features1 = detector.detect(image1, top_n)
     features2 = detector.detect(image2, top_n)
     upright = _matched(features1, features2)

@@ -157,6 +157,14 @@ def _largest_first(models: dict, folder: pathlib.Path) -> list:
     return [models[k] for k in order]
 
 
+def _start_folder(sparse_dir: pathlib.Path, index: int) -> pathlib.Path:
+    """A new empty hidden folder beside ``sparse_dir`` for the mapper's start ``index``: a call
+    killed earlier may have left one behind, and the mapper would add its models to whatever a
+    reused folder still holds."""
+    prefix = f".{sparse_dir.name}.start{index}-"
+    return pathlib.Path(tempfile.mkdtemp(prefix=prefix, dir=sparse_dir.parent))
+
+
 def map_images(
     database: str | pathlib.Path,
     image_dir: str | pathlib.Path,
@@ -213,13 +221,11 @@ def map_images(
     starts = [pair, None] if pair is not None else [None]
     best, kept = [], None
     sparse_dir.parent.mkdir(parents=True, exist_ok=True)
+    made = []  # this call's folders, removed if it fails (another call's are not ours)
     try:
         for index, pair in enumerate(starts):
-            # A fresh folder per start: a call killed earlier may have left one behind, and
-            # the mapper would add its models to whatever a reused folder still holds.
-            folder = pathlib.Path(
-                tempfile.mkdtemp(prefix=f".{sparse_dir.name}.start{index}-", dir=sparse_dir.parent)
-            )
+            folder = _start_folder(sparse_dir, index)
+            made.append(folder)
             models = mapped(folder, pair)
             if kept is None or rank(models) > rank(best):
                 if kept is not None:
@@ -233,8 +239,8 @@ def map_images(
             sparse_dir.rmdir()
         kept.rename(sparse_dir)
     except BaseException:
-        for leftover in sparse_dir.parent.glob(f".{sparse_dir.name}.start*-*"):
-            shutil.rmtree(leftover, ignore_errors=True)
+        for folder in made:
+            shutil.rmtree(folder, ignore_errors=True)
         raise
     return best
 
